@@ -1,0 +1,57 @@
+"""jaxrb: differentiable rigid-body dynamics in JAX.
+
+The public API is re-exported here; modules are named after the physics they hold.
+"""
+
+from . import dynamics as dynamics
+from . import forces as forces
+from . import inertia as inertia
+from . import integrators as integrators
+from . import kinematics as kinematics
+from . import shapes as shapes
+from . import spatial as spatial
+from .forces import AngularDamping as AngularDamping
+from .forces import ExternalWrench as ExternalWrench
+from .forces import Gravity as Gravity
+from .forces import LinearDamping as LinearDamping
+from .forces import PointForces as PointForces
+from .inertia import MassProperties as MassProperties
+from .inertia import mass_properties as mass_properties
+from .inertia import principal_axes as principal_axes
+from .scene import Body as Body
+from .scene import Scene as Scene
+from .shapes import (
+    Box as Box,
+    Capsule as Capsule,
+    Cone as Cone,
+    Cylinder as Cylinder,
+    Disk as Disk,
+    EllipticalCylinder as EllipticalCylinder,
+    Ellipsoid as Ellipsoid,
+    HollowSphere as HollowSphere,
+    Mesh as Mesh,
+    Plane as Plane,
+    Plate as Plate,
+    Rod as Rod,
+    Sphere as Sphere,
+)
+from .simulate import Step as Step
+from .simulate import make_step as make_step
+from .simulate import rollout as rollout
+from .state import Params as Params
+from .state import State as State
+from .state import (
+    angular_momentum_about as angular_momentum_about,
+    angular_velocity as angular_velocity,
+    body_angular_velocity as body_angular_velocity,
+    kinetic_energy as kinetic_energy,
+    linear_momentum as linear_momentum,
+    potential_energy as potential_energy,
+    rotation_matrix as rotation_matrix,
+    rotational_kinetic_energy as rotational_kinetic_energy,
+    total_energy as total_energy,
+    translational_kinetic_energy as translational_kinetic_energy,
+    world_inertia as world_inertia,
+)
+
+__version__ = "0.1.0"

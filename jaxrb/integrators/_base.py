@@ -1,0 +1,38 @@
+"""The interface every integrator implements."""
+
+from __future__ import annotations
+
+import abc
+from typing import TYPE_CHECKING, ClassVar
+
+import equinox as eqx
+
+if TYPE_CHECKING:
+    from ..scene import Scene
+    from ..state import Params, State
+
+__all__ = ["Integrator"]
+
+
+class Integrator(eqx.Module):
+    """One time step of the rigid-body equations of motion.
+
+    An integrator is an option object (like a diffrax solver): build it once, pass it to
+    :func:`jaxrb.make_step`. Subclasses are final and state in their docstring their
+    order, what they conserve, their cost per step and how they fail.
+
+    ``step(scene, params, state, dt)`` must be a pure function of ``params`` and
+    ``state``; ``scene`` and ``dt`` are static. ``prepare(state)`` brings a state built
+    by :meth:`jaxrb.Scene.state` into the form the integrator carries (the identity for
+    all but the rotation-matrix method); it must be idempotent.
+    """
+
+    #: Order of global accuracy in ``dt`` for smooth problems.
+    order: ClassVar[int]
+
+    @abc.abstractmethod
+    def step(self, scene: Scene, params: Params, state: State, dt: float) -> State:
+        raise NotImplementedError
+
+    def prepare(self, state: State) -> State:
+        return state

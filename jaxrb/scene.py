@@ -1,0 +1,380 @@
+"""Bodies and scenes: the static structure of a simulation, and its builders of Params and State.
+
+A :class:`Scene` is static (hashable; changing it recompiles): which bodies, their
+shapes, which force models. It builds the dynamic pytrees with :meth:`Scene.params` and
+:meth:`Scene.state`, validating every input on the way: bad input raises a
+``ValueError`` that says what is wrong and how to fix it, before anything is compiled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import inertia as _inertia
+from . import spatial
+from .forces import ForceModel, Gravity
+from .shapes import Shape
+from .state import Params, State
+
+__all__ = ["Body", "Scene"]
+
+
+def _is_traced(x: Any) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x))
+
+
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """A rigid body: a name, an optional shape and its mass properties.
+
+    Give the mass properties in one of three ways:
+
+    * ``shape`` with ``mass=`` (kg) or ``density=`` (kg/m^3): uniform solid shape;
+    * ``mass=`` and ``inertia=`` (kg m^2, body frame about the centre of mass; a
+      ``(3,)`` of principal moments or a ``(3, 3)`` tensor), with or without a shape;
+    * ``mass_properties=`` (a :class:`jaxrb.MassProperties`, e.g. from
+      :func:`jaxrb.inertia.compose` or a mesh).
+
+    The body frame's origin is the centre of mass. ``shape_offset`` (m, body frame) is
+    where the shape's (or mass properties') own frame origin sits in the body frame; it
+    is zero except for meshes and composed parts whose centre of mass is off their origin.
+    """
+
+    name: str
+    shape: Shape | None = None
+    mass: float | None = None
+    density: float | None = None
+    inertia: Any = None
+    mass_properties: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
+    shape_offset: tuple[float, float, float] = dataclasses.field(init=False)
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"Body.name must be a non-empty string, got {self.name!r}.")
+        if self.shape is not None and not isinstance(self.shape, Shape):
+            raise ValueError(
+                f"Body {self.name!r}: shape must be a jaxrb shape (rb.Box, rb.Sphere, ...), "
+                f"got {type(self.shape).__name__}."
+            )
+        mp = self._resolve()
+        mass = float(np.asarray(mp.mass))
+        inertia = np.asarray(mp.inertia, dtype=float)
+        _inertia.check_mass_properties(mass, inertia, name=f"Body {self.name!r}")
+        com = np.asarray(mp.com, dtype=float)
+        object.__setattr__(self, "mass", mass)
+        object.__setattr__(self, "inertia", tuple(map(tuple, inertia.tolist())))
+        object.__setattr__(self, "density", None)
+        object.__setattr__(self, "mass_properties", None)
+        object.__setattr__(self, "shape_offset", tuple((-com).tolist()))
+
+    def _resolve(self):
+        where = f"Body {self.name!r}"
+        if self.mass_properties is not None:
+            if self.mass is not None or self.density is not None or self.inertia is not None:
+                raise ValueError(
+                    f"{where}: give either mass_properties= or mass/density/inertia, not both."
+                )
+            return self.mass_properties
+        if self.inertia is not None:
+            if self.mass is None or self.density is not None:
+                raise ValueError(
+                    f"{where}: an explicit inertia= needs mass= (kg) and no density=."
+                )
+            inertia = np.asarray(self.inertia, dtype=float)
+            if inertia.shape == (3,):
+                inertia = np.diag(inertia)
+            if inertia.shape != (3, 3):
+                raise ValueError(
+                    f"{where}: inertia must be 3 principal moments or a 3x3 tensor (kg m^2), "
+                    f"got shape {inertia.shape}."
+                )
+            return _inertia.MassProperties(
+                mass=jnp.asarray(float(self.mass)), com=jnp.zeros(3), inertia=jnp.asarray(inertia)
+            )
+        if self.shape is None:
+            raise ValueError(
+                f"{where}: no mass properties. Give a shape with mass= or density=, "
+                "or mass= with inertia=, or mass_properties=."
+            )
+        return _inertia.mass_properties(self.shape, density=self.density, mass=self.mass)
+
+
+def _canonical_dtype(dtype):
+    # The default float of the current JAX configuration (float32 unless x64 is on).
+    return jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """The static description of a world of rigid bodies.
+
+    Args:
+        bodies: the bodies, in order; arrays in ``Params`` and ``State`` follow it.
+        gravity: ``(3,)`` m/s^2 in the world frame, or ``None`` for no gravity (no
+            gravity code is then compiled). The value is only the default of
+            ``Params.gravity``, which can be changed or differentiated without
+            recompiling.
+        forces: extra force models (:class:`jaxrb.LinearDamping`,
+            :class:`jaxrb.AngularDamping`, :class:`jaxrb.PointForces`,
+            :class:`jaxrb.ExternalWrench`, ...). Only these are compiled into a step.
+    """
+
+    bodies: Sequence[Body]
+    gravity: Sequence[float] | None = (0.0, 0.0, -9.81)
+    forces: Sequence[ForceModel] = ()
+
+    def __post_init__(self):
+        bodies = tuple(self.bodies)
+        if not bodies:
+            raise ValueError("Scene needs at least one body.")
+        for b in bodies:
+            if not isinstance(b, Body):
+                raise ValueError(f"Scene.bodies must hold rb.Body objects, got {type(b).__name__}.")
+        names = [b.name for b in bodies]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates:
+            raise ValueError(f"Body names must be unique; repeated: {duplicates}.")
+        object.__setattr__(self, "bodies", bodies)
+        if self.gravity is not None:
+            g = np.asarray(self.gravity, dtype=float)
+            if g.shape != (3,) or not np.all(np.isfinite(g)):
+                raise ValueError(
+                    f"Scene.gravity must be a finite 3-vector in m/s^2 (or None), got {self.gravity!r}."
+                )
+            object.__setattr__(self, "gravity", tuple(g.tolist()))
+        forces = tuple(self.forces)
+        for f in forces:
+            if not isinstance(f, ForceModel):
+                raise ValueError(
+                    f"Scene.forces must hold force models (rb.LinearDamping(), rb.ExternalWrench(fn), "
+                    f"...), got {f!r}."
+                )
+        object.__setattr__(self, "forces", forces)
+
+    # ------------------------------------------------------------------ structure
+
+    @property
+    def num_bodies(self) -> int:
+        return len(self.bodies)
+
+    @property
+    def body_names(self) -> tuple[str, ...]:
+        return tuple(b.name for b in self.bodies)
+
+    @property
+    def force_models(self) -> tuple[ForceModel, ...]:
+        """Every force model the step evaluates, gravity first (static)."""
+        return ((Gravity(),) if self.gravity is not None else ()) + tuple(self.forces)
+
+    def index(self, name: str) -> int:
+        """Position of the body called ``name`` in the body axis."""
+        try:
+            return self.body_names.index(name)
+        except ValueError:
+            raise ValueError(f"Unknown body name {name!r}; this scene has {list(self.body_names)}.") from None
+
+    # --------------------------------------------------------------- per-body input
+
+    def _per_body(self, what: str, value, trailing: tuple[int, ...], default: np.ndarray, dtype):
+        """Turn a scalar/vector, an ``(N, ...)`` array or a ``{name: value}`` dict into ``(N, ...)``."""
+        n = self.num_bodies
+        if value is None:
+            out = np.broadcast_to(default, (n, *trailing))
+            return jnp.asarray(out, dtype=dtype)
+        if isinstance(value, Mapping):
+            out = np.array(np.broadcast_to(default, (n, *trailing)), dtype=float)
+            for name, v in value.items():
+                v = np.asarray(v, dtype=float)
+                if v.shape != trailing:
+                    raise ValueError(f"{what}[{name!r}] must have shape {trailing}, got {v.shape}.")
+                out[self.index(name)] = v
+            return jnp.asarray(out, dtype=dtype)
+        if _is_traced(value):
+            arr = jnp.asarray(value, dtype=dtype)
+            return jnp.broadcast_to(arr, (n, *trailing))
+        arr = np.asarray(value, dtype=float)
+        if arr.shape == trailing:
+            arr = np.broadcast_to(arr, (n, *trailing))
+        if arr.shape != (n, *trailing):
+            raise ValueError(
+                f"{what} must have shape {trailing} (same for every body), ({n}, *{trailing}) "
+                f"(one per body, in scene order {list(self.body_names)}), or be a dict "
+                f"{{body_name: value}}; got shape {arr.shape}."
+            )
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{what} contains NaN or infinite values: {arr!r}.")
+        return jnp.asarray(arr, dtype=dtype)
+
+    # ------------------------------------------------------------------- builders
+
+    def params(
+        self,
+        *,
+        mass=None,
+        inertia=None,
+        gravity=None,
+        linear_damping=0.0,
+        angular_damping=0.0,
+        extra=None,
+        dtype=None,
+    ) -> Params:
+        """Build :class:`jaxrb.Params`, defaulting to the bodies' mass properties.
+
+        Each per-body argument may be one value for every body, an array with the body
+        axis first, or a ``{body_name: value}`` dict overriding some bodies. ``inertia``
+        entries may be ``(3,)`` principal moments or ``(3, 3)`` tensors (kg m^2, body
+        frame). Values are validated (positive mass, symmetric positive definite inertia
+        obeying the triangle inequality, finite numbers) unless they are traced.
+        """
+        dtype = _canonical_dtype(dtype)
+        defaults_mass = np.array([b.mass for b in self.bodies])
+        defaults_inertia = np.array([b.inertia for b in self.bodies])
+        if mass is None:
+            mass_arr = jnp.asarray(defaults_mass, dtype=dtype)
+        elif isinstance(mass, Mapping):
+            m = defaults_mass.copy()
+            for name, v in mass.items():
+                m[self.index(name)] = float(v)
+            mass_arr = jnp.asarray(m, dtype=dtype)
+        else:
+            mass_arr = self._per_body("mass", mass, (), np.zeros(()), dtype)
+        if inertia is None:
+            inertia_arr = jnp.asarray(defaults_inertia, dtype=dtype)
+        elif isinstance(inertia, Mapping):
+            tensor = defaults_inertia.copy()
+            for name, v in inertia.items():
+                v = np.asarray(v, dtype=float)
+                tensor[self.index(name)] = np.diag(v) if v.shape == (3,) else v
+            inertia_arr = jnp.asarray(tensor, dtype=dtype)
+        else:
+            if not _is_traced(inertia):
+                arr = np.asarray(inertia, dtype=float)
+                if arr.shape[-1:] == (3,) and arr.ndim in (1, 2) and arr.shape != (3, 3):
+                    arr = arr[..., None] * np.eye(3)  # principal moments -> diagonal tensors
+                inertia = arr
+            inertia_arr = self._per_body("inertia", inertia, (3, 3), np.eye(3), dtype)
+        if gravity is None:
+            g = self.gravity if self.gravity is not None else (0.0, 0.0, 0.0)
+            gravity_arr = jnp.asarray(g, dtype=dtype)
+        else:
+            gravity_arr = jnp.asarray(gravity, dtype=dtype)
+            if gravity_arr.shape != (3,):
+                raise ValueError(f"gravity must be a 3-vector (m/s^2), got shape {gravity_arr.shape}.")
+        params = Params(
+            mass=mass_arr,
+            inertia=inertia_arr,
+            gravity=gravity_arr,
+            linear_damping=self._per_body("linear_damping", linear_damping, (), np.zeros(()), dtype),
+            angular_damping=self._per_body("angular_damping", angular_damping, (), np.zeros(()), dtype),
+            extra=extra,
+        )
+        if not _is_traced((params.mass, params.inertia, params.linear_damping, params.angular_damping)):
+            self.check_params(params)
+        return params
+
+    def check_params(self, params: Params) -> None:
+        """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
+        n = self.num_bodies
+        expected = {"mass": (n,), "inertia": (n, 3, 3), "gravity": (3,),
+                    "linear_damping": (n,), "angular_damping": (n,)}
+        for field, shape in expected.items():
+            value = getattr(params, field)
+            if value.shape != shape:
+                raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.")
+        for i, name in enumerate(self.body_names):
+            _inertia.check_mass_properties(
+                np.asarray(params.mass[i]), np.asarray(params.inertia[i]), name=f"Body {name!r}"
+            )
+        for field in ("linear_damping", "angular_damping"):
+            value = np.asarray(getattr(params, field))
+            if not np.all(np.isfinite(value)) or np.any(value < 0):
+                raise ValueError(
+                    f"Params.{field} must be finite and non-negative (a negative damping "
+                    f"coefficient adds energy), got {value}."
+                )
+        if not np.all(np.isfinite(np.asarray(params.gravity))):
+            raise ValueError(f"Params.gravity must be finite, got {params.gravity}.")
+
+    def state(
+        self,
+        params: Params | None = None,
+        *,
+        position=None,
+        orientation=None,
+        velocity=None,
+        angular_velocity=None,
+        body_angular_velocity=None,
+        angular_momentum=None,
+        time=0.0,
+        dtype=None,
+    ) -> State:
+        """Build a :class:`jaxrb.State`.
+
+        Per-body arguments take one value for every body, an ``(N, ...)`` array, or a
+        ``{body_name: value}`` dict (other bodies keep the default).
+
+        Args:
+            params: used to turn an angular velocity into angular momentum (default:
+                ``self.params()``).
+            position: centres of mass (m, world). Default 0.
+            orientation: unit quaternions ``(w, x, y, z)``, body to world. Default identity.
+            velocity: centre-of-mass velocities (m/s, world). Default 0.
+            angular_velocity: rad/s, world frame; or
+            body_angular_velocity: rad/s, body frame; or
+            angular_momentum: kg m^2/s, world frame, about the centre of mass.
+                At most one of the three. Default: at rest.
+            time: s.
+        """
+        dtype = _canonical_dtype(dtype)
+        given = [k for k, v in (("angular_velocity", angular_velocity),
+                                ("body_angular_velocity", body_angular_velocity),
+                                ("angular_momentum", angular_momentum)) if v is not None]
+        if len(given) > 1:
+            raise ValueError(f"Give at most one of angular_velocity, body_angular_velocity, "
+                             f"angular_momentum; got {given}.")
+        zeros3 = np.zeros(3)
+        position = self._per_body("position", position, (3,), zeros3, dtype)
+        velocity = self._per_body("velocity", velocity, (3,), zeros3, dtype)
+        orientation = self._per_body("orientation", orientation, (4,), np.array([1.0, 0, 0, 0]), dtype)
+        if not _is_traced(orientation):
+            norms = np.linalg.norm(np.asarray(orientation, dtype=float), axis=-1)
+            bad = np.abs(norms - 1.0) > 1e-3
+            if np.any(bad):
+                names = [self.body_names[i] for i in np.flatnonzero(bad)]
+                raise ValueError(
+                    f"orientation of {names} is not a unit quaternion (norms {norms[bad]}). Pass "
+                    "(w, x, y, z), scalar first, with norm 1, e.g. from rb.spatial.quat_from_axis_angle "
+                    "or rb.spatial.quat_normalize."
+                )
+        orientation = spatial.quat_normalize(orientation)
+        if angular_momentum is not None:
+            l_world = self._per_body("angular_momentum", angular_momentum, (3,), zeros3, dtype)
+        elif angular_velocity is None and body_angular_velocity is None:
+            l_world = jnp.zeros_like(position)
+        else:
+            params = self.params(dtype=dtype) if params is None else params
+            if angular_velocity is not None:
+                omega_world = self._per_body("angular_velocity", angular_velocity, (3,), zeros3, dtype)
+                omega_body = spatial.quat_rotate_inverse(orientation, omega_world)
+            else:
+                omega_body = self._per_body(
+                    "body_angular_velocity", body_angular_velocity, (3,), zeros3, dtype
+                )
+            l_body = spatial.matvec(params.inertia.astype(dtype), omega_body)
+            l_world = spatial.quat_rotate(orientation, l_body)
+        time = jnp.asarray(time, dtype=dtype)
+        if time.shape != () or (not _is_traced(time) and not np.isfinite(float(time))):
+            raise ValueError(f"time must be a finite scalar (s), got {time}.")
+        return State(
+            position=position,
+            orientation=orientation,
+            velocity=velocity,
+            angular_momentum=l_world,
+            time=time,
+        )

@@ -1,0 +1,264 @@
+"""Shapes: static, hashable geometry descriptions.
+
+A shape is part of a scene's *static* structure: its sizes are Python floats, it is
+hashable, and changing it recompiles. Everything a user may want to differentiate
+(mass, inertia, ...) lives in :class:`jaxrb.Params` instead.
+
+Frames. Every shape is described in its own frame, whose origin is the shape's centre
+of mass (for a uniform density) and whose axes are the shape's symmetry axes. Axially
+symmetric shapes (rod, disk, cylinder, capsule, cone) have their axis along **z**, as in
+MuJoCo. Seed 001's inertia table puts the axis of the rod, cylinder and cone along x;
+the moments are the same, permuted (see :mod:`jaxrb.inertia`). All sizes are in metres
+and are *half* sizes (half extents, half lengths), as in MuJoCo.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+__all__ = [
+    "Shape",
+    "Sphere",
+    "HollowSphere",
+    "Box",
+    "Capsule",
+    "Cylinder",
+    "EllipticalCylinder",
+    "Cone",
+    "Ellipsoid",
+    "Rod",
+    "Plate",
+    "Disk",
+    "Mesh",
+    "Plane",
+]
+
+
+def _positive(owner: str, name: str, value: float) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{owner}.{name} must be a number, got {value!r}.") from err
+    if not (math.isfinite(value) and value > 0.0):
+        raise ValueError(
+            f"{owner}.{name} must be a positive, finite length in metres, got {value}. "
+            "Sizes are half sizes (radius, half extent, half length)."
+        )
+    return value
+
+
+def _positive_tuple(owner: str, name: str, values, size: int) -> tuple[float, ...]:
+    try:
+        values = tuple(values)
+    except TypeError as err:
+        raise ValueError(f"{owner}.{name} must be a sequence of {size} numbers, got {values!r}.") from err
+    if len(values) != size:
+        raise ValueError(f"{owner}.{name} must have {size} entries, got {len(values)}: {values!r}.")
+    return tuple(_positive(owner, f"{name}[{i}]", v) for i, v in enumerate(values))
+
+
+class Shape:
+    """Base class of all shapes. Subclasses are frozen dataclasses (hashable, static)."""
+
+    #: True for shapes with zero volume (rod, plate, disk, thin shell): these need
+    #: ``mass=``, because a volumetric density gives them no mass.
+    thin: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Sphere(Shape):
+    """Solid sphere of ``radius`` (m)."""
+
+    radius: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("Sphere", "radius", self.radius))
+
+
+@dataclasses.dataclass(frozen=True)
+class HollowSphere(Shape):
+    """Spherical shell of outer ``radius`` (m) and wall ``thickness`` (m).
+
+    ``thickness=0`` (the default) is the thin shell, ``I = 2/3 m r^2``; it has no volume,
+    so give its mass. ``0 < thickness < radius`` is a thick shell with a volume.
+    """
+
+    radius: float
+    thickness: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("HollowSphere", "radius", self.radius))
+        t = float(self.thickness)
+        if not (math.isfinite(t) and 0.0 <= t < self.radius):
+            raise ValueError(
+                f"HollowSphere.thickness must satisfy 0 <= thickness < radius = {self.radius}, "
+                f"got {t}. Use Sphere for a solid ball."
+            )
+        object.__setattr__(self, "thickness", t)
+
+    @property
+    def thin(self) -> bool:  # type: ignore[override]
+        return self.thickness == 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Box(Shape):
+    """Rectangular prism with ``half_extents = (a, b, c)`` (m) along x, y, z."""
+
+    half_extents: tuple[float, float, float]
+
+    def __post_init__(self):
+        object.__setattr__(self, "half_extents", _positive_tuple("Box", "half_extents", self.half_extents, 3))
+
+
+@dataclasses.dataclass(frozen=True)
+class Capsule(Shape):
+    """Cylinder of ``radius`` and ``half_length`` along z, capped by two hemispheres."""
+
+    radius: float
+    half_length: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("Capsule", "radius", self.radius))
+        object.__setattr__(self, "half_length", _positive("Capsule", "half_length", self.half_length))
+
+
+@dataclasses.dataclass(frozen=True)
+class Cylinder(Shape):
+    """Solid circular cylinder of ``radius`` and ``half_length``, axis along z."""
+
+    radius: float
+    half_length: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("Cylinder", "radius", self.radius))
+        object.__setattr__(self, "half_length", _positive("Cylinder", "half_length", self.half_length))
+
+
+@dataclasses.dataclass(frozen=True)
+class EllipticalCylinder(Shape):
+    """Solid cylinder with elliptical cross-section, axis along z.
+
+    ``semi_axes = (a, b)`` are the ellipse's semi-axes along x and y.
+    """
+
+    semi_axes: tuple[float, float]
+    half_length: float
+
+    def __post_init__(self):
+        object.__setattr__(
+            self, "semi_axes", _positive_tuple("EllipticalCylinder", "semi_axes", self.semi_axes, 2)
+        )
+        object.__setattr__(
+            self, "half_length", _positive("EllipticalCylinder", "half_length", self.half_length)
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class Cone(Shape):
+    """Solid circular cone, base ``radius``, ``height``, axis along +z (base to apex).
+
+    The shape frame's origin is the centre of mass, a quarter of the height above the
+    base: the base is at ``z = -height/4`` and the apex at ``z = 3 height/4``.
+    """
+
+    radius: float
+    height: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("Cone", "radius", self.radius))
+        object.__setattr__(self, "height", _positive("Cone", "height", self.height))
+
+
+@dataclasses.dataclass(frozen=True)
+class Ellipsoid(Shape):
+    """Solid ellipsoid with ``semi_axes = (a, b, c)`` along x, y, z."""
+
+    semi_axes: tuple[float, float, float]
+
+    def __post_init__(self):
+        object.__setattr__(self, "semi_axes", _positive_tuple("Ellipsoid", "semi_axes", self.semi_axes, 3))
+
+
+@dataclasses.dataclass(frozen=True)
+class Rod(Shape):
+    """Slender rod of ``half_length`` along z, with no thickness (``I_z = 0``).
+
+    Its inertia is singular, so it can describe a part of a body but not a whole
+    simulated body: use a thin :class:`Cylinder` for that.
+    """
+
+    half_length: float
+    thin = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "half_length", _positive("Rod", "half_length", self.half_length))
+
+
+@dataclasses.dataclass(frozen=True)
+class Plate(Shape):
+    """Thin rectangular plate in the x-y plane, ``half_extents = (a, b)``; normal along z."""
+
+    half_extents: tuple[float, float]
+    thin = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "half_extents", _positive_tuple("Plate", "half_extents", self.half_extents, 2))
+
+
+@dataclasses.dataclass(frozen=True)
+class Disk(Shape):
+    """Thin circular disk of ``radius`` in the x-y plane; normal along z."""
+
+    radius: float
+    thin = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _positive("Disk", "radius", self.radius))
+
+
+@dataclasses.dataclass(frozen=True)
+class Mesh(Shape):
+    """Closed, consistently oriented triangle mesh (outward normals, counter-clockwise).
+
+    ``vertices``: ``(V, 3)`` positions in metres; ``faces``: ``(F, 3)`` vertex indices.
+    Stored as nested tuples so the shape stays hashable; pass any array-like.
+    Unlike the other shapes, the mesh frame is the frame the vertices are given in: its
+    origin need not be the centre of mass (:func:`jaxrb.mass_properties` returns ``com``).
+    """
+
+    vertices: tuple[tuple[float, float, float], ...]
+    faces: tuple[tuple[int, int, int], ...]
+
+    def __post_init__(self):
+        import numpy as np
+
+        v = np.asarray(self.vertices, dtype=float)
+        f = np.asarray(self.faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
+            raise ValueError(f"Mesh.vertices must have shape (V>=4, 3), got {v.shape}.")
+        if not np.all(np.isfinite(v)):
+            raise ValueError("Mesh.vertices contains NaN or infinite values.")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
+            raise ValueError(f"Mesh.faces must have shape (F>=4, 3), got {f.shape}.")
+        if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"Mesh.faces must be integer indices in [0, {len(v)}).")
+        object.__setattr__(self, "vertices", tuple(map(tuple, v.tolist())))
+        object.__setattr__(self, "faces", tuple(map(tuple, f.astype(int).tolist())))
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane(Shape):
+    """Static half-space ``{x : normal . x <= offset}``, e.g. the ground. Has no mass."""
+
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    offset: float = 0.0
+
+    def __post_init__(self):
+        n = tuple(float(x) for x in self.normal)
+        norm = math.sqrt(sum(x * x for x in n))
+        if len(n) != 3 or not norm > 0 or not math.isfinite(norm):
+            raise ValueError(f"Plane.normal must be a non-zero 3-vector, got {self.normal!r}.")
+        object.__setattr__(self, "normal", tuple(x / norm for x in n))
+        object.__setattr__(self, "offset", float(self.offset))

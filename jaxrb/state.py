@@ -1,0 +1,169 @@
+"""The dynamic pytrees, ``Params`` and ``State``, and the quantities derived from them.
+
+Both are arrays only, with a leading body axis of length ``N``. Changing their values
+never recompiles a step; changing their shapes or dtypes does. Derived quantities
+(angular velocity, rotation matrix, world inertia, energies, momenta) are computed by
+the functions below, never stored, so they cannot go stale.
+
+Frames: ``_world`` quantities are in the inertial frame; ``Params.inertia`` is in the
+body frame, about the centre of mass. The body frame's origin is the centre of mass.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from . import spatial
+
+__all__ = [
+    "Params",
+    "State",
+    "rotation_matrix",
+    "inverse_inertia_body",
+    "world_inertia",
+    "inverse_world_inertia",
+    "angular_velocity",
+    "body_angular_velocity",
+    "translational_kinetic_energy",
+    "rotational_kinetic_energy",
+    "kinetic_energy",
+    "potential_energy",
+    "total_energy",
+    "linear_momentum",
+    "angular_momentum_about",
+]
+
+
+class Params(eqx.Module):
+    """Physical parameters: everything a user may want to differentiate or fit.
+
+    Attributes:
+        mass: ``(N,)`` kg.
+        inertia: ``(N, 3, 3)`` kg m^2, body frame, about the centre of mass.
+        gravity: ``(3,)`` m/s^2, world frame. Used only if the scene declares gravity.
+        linear_damping: ``(N,)`` N s/m; force ``-c v``. Used only if the scene declares
+            :class:`jaxrb.LinearDamping`.
+        angular_damping: ``(N,)`` N m s; torque ``-c omega``. Used only if the scene
+            declares :class:`jaxrb.AngularDamping`.
+        extra: any pytree of arrays, passed untouched to user force functions (their
+            own differentiable parameters). ``None`` by default.
+    """
+
+    mass: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    inertia: Float[Array, "n 3 3"] = eqx.field(converter=jnp.asarray)
+    gravity: Float[Array, "3"] = eqx.field(converter=jnp.asarray)
+    linear_damping: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    angular_damping: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    extra: Any = None
+
+
+class State(eqx.Module):
+    """The state of ``N`` rigid bodies (seed 000's state: x_CM, v_CM, orientation, L).
+
+    Attributes:
+        position: ``(N, 3)`` m, centre of mass, world frame.
+        orientation: ``(N, 4)`` unit quaternion ``(w, x, y, z)``, body to world.
+        velocity: ``(N, 3)`` m/s, centre-of-mass velocity, world frame.
+        angular_momentum: ``(N, 3)`` kg m^2/s, about the centre of mass, world frame.
+            It is the state variable (seeds 000 and 001): torque-free, it is constant
+            by construction, whatever the integrator does to the attitude.
+        time: ``()`` s.
+        rotation: ``(N, 3, 3)`` or ``None``. Only the seed-000 integrator
+            (:class:`jaxrb.integrators.ExplicitEuler`) carries its rotation matrix ``A``
+            here, because it updates ``A`` itself (``A <- A + dt w~ A``); then this
+            matrix, not the quaternion, is the body's attitude.
+    """
+
+    position: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
+    orientation: Float[Array, "n 4"] = eqx.field(converter=jnp.asarray)
+    velocity: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
+    angular_momentum: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
+    time: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    rotation: Float[Array, "n 3 3"] | None = None
+
+
+def rotation_matrix(state: State) -> Float[Array, "n 3 3"]:
+    """``A``: body-to-world rotation matrix (columns are the body axes in the world frame)."""
+    if state.rotation is not None:
+        return state.rotation
+    return spatial.quat_to_matrix(state.orientation)
+
+
+def inverse_inertia_body(params: Params) -> Float[Array, "n 3 3"]:
+    """``I_body^-1`` (kg^-1 m^-2), by the closed-form 3x3 inverse."""
+    return spatial.inverse3(params.inertia)
+
+
+def _to_world(rot, m_body):
+    return spatial.matmul(spatial.matmul(rot, m_body), spatial.transpose(rot))
+
+
+def world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:
+    """``I = A I_body A^T`` (seed 000), kg m^2, world frame, about the centre of mass."""
+    return _to_world(rotation_matrix(state), params.inertia)
+
+
+def inverse_world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:
+    """``I^-1 = A I_body^-1 A^T`` (seed 000's update of I^-1)."""
+    return _to_world(rotation_matrix(state), inverse_inertia_body(params))
+
+
+def angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
+    """``omega = I^-1 L`` (rad/s, world frame), seed 000's ``omega <- I^-1 L``."""
+    rot = rotation_matrix(state)
+    l_body = spatial.matvec(spatial.transpose(rot), state.angular_momentum)
+    omega_body = spatial.matvec(inverse_inertia_body(params), l_body)
+    return spatial.matvec(rot, omega_body)
+
+
+def body_angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
+    """Angular velocity in the body frame, ``A^T omega`` (rad/s)."""
+    rot = rotation_matrix(state)
+    l_body = spatial.matvec(spatial.transpose(rot), state.angular_momentum)
+    return spatial.matvec(inverse_inertia_body(params), l_body)
+
+
+def translational_kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
+    """``m |v|^2 / 2`` per body (J)."""
+    return 0.5 * params.mass * spatial.dot(state.velocity, state.velocity)
+
+
+def rotational_kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
+    """``omega . L / 2 = L . I^-1 L / 2`` per body (J)."""
+    return 0.5 * spatial.dot(angular_velocity(params, state), state.angular_momentum)
+
+
+def kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
+    """Translational plus rotational kinetic energy per body (J)."""
+    return translational_kinetic_energy(params, state) + rotational_kinetic_energy(params, state)
+
+
+def potential_energy(params: Params, state: State) -> Float[Array, " n"]:
+    """Gravitational potential ``-m g . x`` per body (J), zero at the world origin."""
+    return -params.mass * spatial.dot(params.gravity[None, :], state.position)
+
+
+def total_energy(params: Params, state: State) -> Float[Array, " n"]:
+    """Kinetic plus gravitational potential energy per body (J)."""
+    return kinetic_energy(params, state) + potential_energy(params, state)
+
+
+def linear_momentum(params: Params, state: State) -> Float[Array, "n 3"]:
+    """``p = m v`` per body (kg m/s, world frame)."""
+    return params.mass[:, None] * state.velocity
+
+
+def angular_momentum_about(
+    params: Params, state: State, point: Float[Array, "3"] | None = None
+) -> Float[Array, "n 3"]:
+    """Angular momentum of each body about a fixed world ``point`` (default: origin).
+
+    ``L_point = (x - point) x m v + L`` (kg m^2/s, world frame). Summed over bodies it is
+    the quantity conserved by an isolated system.
+    """
+    r = state.position if point is None else state.position - jnp.asarray(point)[None, :]
+    return spatial.cross(r, linear_momentum(params, state)) + state.angular_momentum
