@@ -33,7 +33,10 @@ class ExplicitEuler(Integrator):
     * Conserves ``L`` exactly when torque-free (it is the state, so ``L <- L + 0``).
     * Energy is not conserved: ``A + dt omega~ A`` is not a rotation, it stretches ``A`` by
       ``sqrt(1 + |omega dt|^2)`` per step, and Gram-Schmidt removes the stretch but not
-      the phase error; energy drifts at O(dt) per unit time.
+      the phase error. Torque-free, the energy *decreases*, drifting towards spin about
+      the major axis (measured for I = diag(1, 2, 3): -2% at ``|omega| dt = 0.01`` and -22%
+      at 0.1 over 1e4 steps). Since ``L`` is exact and ``A`` a rotation, it stays in
+      ``[|L|^2 / 2 I_max, |L|^2 / 2 I_min]``: it never blows up.
     * Cost: one force evaluation, a 3x3 matrix update and a Gram-Schmidt per step.
     * Failure: without reorthonormalisation ``|A^T A - E|`` grows like ``(1+|omega dt|^2)^n - 1``
       (``reorthonormalize=False`` exists to watch that happen); large ``|omega| dt`` makes
@@ -87,7 +90,10 @@ class SemiImplicitEuler(Integrator):
     * Order 1. For a projectile the position error is exactly ``g dt t / 2``.
     * Conserves ``L`` exactly when torque-free, and keeps ``q`` on the unit sphere.
       Symplectic for the translational part (bounded energy error for a spring);
-      the rotational part is not symplectic and its energy error grows at O(dt).
+      the rotational part is not: torque-free, its energy *increases*, drifting towards
+      spin about the minor axis (measured for I = diag(1, 2, 3): +17% at
+      ``|omega| dt = 0.01`` and +127% at 0.1 over 1e4 steps, the same in float32 and
+      float64). It stays below ``|L|^2 / 2 I_min`` because ``L`` is exact: no NaN.
     * Cost: one force evaluation, two quaternion rotations, one sin/cos pair per step.
     * Failure: the attitude lags the spin; at ``|omega| dt`` of order 1 the error is O(1),
       though the state stays finite and ``|q| = 1``.
