@@ -170,7 +170,7 @@ def test_gradient_at_rest_is_finite():
     state = scene.state(params)
     for integrator in INTEGRATORS:
         step = rb.make_step(scene, integrator, 1e-2)
-        g = jax.grad(lambda s: pose_loss(rb.rollout(step, params, s, 10)[0]))(step.prepare(state))
+        g = jax.grad(lambda s, step=step: pose_loss(rb.rollout(step, params, s, 10)[0]))(step.prepare(state))
         for leaf in jax.tree.leaves(g):
             assert np.all(np.isfinite(leaf))
 
@@ -191,7 +191,8 @@ def test_float32_robustness_at_high_spin(integrator):
     # |q| = 1 to float32 round-off (the quaternion is renormalised each step).
     np.testing.assert_allclose(np.linalg.norm(traj.orientation[:, 0], axis=-1), 1.0, atol=1e-6)
     # L is the state: torque-free it is exactly unchanged, in any precision.
-    np.testing.assert_array_equal(traj.angular_momentum, jnp.broadcast_to(state.angular_momentum, traj.angular_momentum.shape))
+    l_start = jnp.broadcast_to(state.angular_momentum, traj.angular_momentum.shape)
+    np.testing.assert_array_equal(traj.angular_momentum, l_start)
     energy = np.asarray(jax.vmap(lambda s: rb.kinetic_energy(params, s))(traj))[:, 0]
     e0 = float(rb.kinetic_energy(params, state)[0])
     if integrator.order == 4:
