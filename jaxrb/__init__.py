@@ -20,82 +20,34 @@ from .inertia import mass_properties as mass_properties
 from .inertia import principal_axes as principal_axes
 from .scene import Body as Body
 from .scene import Scene as Scene
-from .shapes import (
-    Box as Box,
-)
-from .shapes import (
-    Capsule as Capsule,
-)
-from .shapes import (
-    Cone as Cone,
-)
-from .shapes import (
-    Cylinder as Cylinder,
-)
-from .shapes import (
-    Disk as Disk,
-)
-from .shapes import (
-    Ellipsoid as Ellipsoid,
-)
-from .shapes import (
-    EllipticalCylinder as EllipticalCylinder,
-)
-from .shapes import (
-    HollowSphere as HollowSphere,
-)
-from .shapes import (
-    Mesh as Mesh,
-)
-from .shapes import (
-    Plane as Plane,
-)
-from .shapes import (
-    Plate as Plate,
-)
-from .shapes import (
-    Rod as Rod,
-)
-from .shapes import (
-    Sphere as Sphere,
-)
+from .shapes import Box as Box
+from .shapes import Capsule as Capsule
+from .shapes import Cone as Cone
+from .shapes import Cylinder as Cylinder
+from .shapes import Disk as Disk
+from .shapes import Ellipsoid as Ellipsoid
+from .shapes import EllipticalCylinder as EllipticalCylinder
+from .shapes import HollowSphere as HollowSphere
+from .shapes import Mesh as Mesh
+from .shapes import Plane as Plane
+from .shapes import Plate as Plate
+from .shapes import Rod as Rod
+from .shapes import Sphere as Sphere
 from .simulate import Step as Step
 from .simulate import make_step as make_step
 from .simulate import rollout as rollout
 from .state import Params as Params
 from .state import State as State
-from .state import (
-    angular_momentum_about as angular_momentum_about,
-)
-from .state import (
-    angular_velocity as angular_velocity,
-)
-from .state import (
-    body_angular_velocity as body_angular_velocity,
-)
-from .state import (
-    kinetic_energy as kinetic_energy,
-)
-from .state import (
-    linear_momentum as linear_momentum,
-)
-from .state import (
-    potential_energy as potential_energy,
-)
-from .state import (
-    rotation_matrix as rotation_matrix,
-)
-from .state import (
-    rotational_kinetic_energy as rotational_kinetic_energy,
-)
-from .state import (
-    total_energy as total_energy,
-)
-from .state import (
-    translational_kinetic_energy as translational_kinetic_energy,
-)
-from .state import (
-    world_inertia as world_inertia,
-)
+from .state import angular_momentum_about as angular_momentum_about
+from .state import angular_velocity as angular_velocity
+from .state import body_angular_velocity as body_angular_velocity
+from .state import kinetic_energy as kinetic_energy
+from .state import linear_momentum as linear_momentum
+from .state import potential_energy as potential_energy
+from .state import rotation_matrix as rotation_matrix
+from .state import rotational_kinetic_energy as rotational_kinetic_energy
+from .state import total_energy as total_energy
+from .state import translational_kinetic_energy as translational_kinetic_energy
+from .state import world_inertia as world_inertia
 
 __version__ = "0.1.0"
