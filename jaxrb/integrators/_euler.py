@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 from .. import spatial
@@ -49,14 +50,7 @@ class ExplicitEuler(Integrator):
     def prepare(self, state: State) -> State:
         if state.rotation is not None:
             return state
-        return State(
-            position=state.position,
-            orientation=state.orientation,
-            velocity=state.velocity,
-            angular_momentum=state.angular_momentum,
-            time=state.time,
-            rotation=spatial.quat_to_matrix(state.orientation),
-        )
+        return dataclasses.replace(state, rotation=spatial.quat_to_matrix(state.orientation))
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         state = self.prepare(state)

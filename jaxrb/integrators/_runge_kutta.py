@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import jax
@@ -27,13 +28,7 @@ def _stage_derivative(scene, params: Params, state: State):
     """
     q_raw = state.orientation
     norm = spatial.safe_norm(q_raw, keepdims=True)
-    unit = State(
-        position=state.position,
-        orientation=q_raw / norm,
-        velocity=state.velocity,
-        angular_momentum=state.angular_momentum,
-        time=state.time,
-    )
+    unit = dataclasses.replace(state, orientation=q_raw / norm)
     d = derivative(scene, params, unit)
     return State(
         position=d.position,
@@ -67,13 +62,8 @@ class RK4(Integrator):
     order: ClassVar[int] = 4
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
-        carried = State(
-            position=state.position,
-            orientation=state.orientation,
-            velocity=state.velocity,
-            angular_momentum=state.angular_momentum,
-            time=state.time,
-        )
+        # A rotation matrix, if the state carries one, is refreshed from q at the end.
+        carried = dataclasses.replace(state, rotation=None)
         k1 = _stage_derivative(scene, params, carried)
         k2 = _stage_derivative(scene, params, _axpy(0.5 * dt, k1, carried))
         k3 = _stage_derivative(scene, params, _axpy(0.5 * dt, k2, carried))
