@@ -106,6 +106,7 @@ def rollout(
     *,
     save_every: int = 1,
     checkpoint: bool = False,
+    include_initial: bool = False,
 ) -> tuple[State, State]:
     """Run ``num_steps`` steps as one ``lax.scan``; return ``(final, trajectory)``.
 
@@ -118,11 +119,15 @@ def rollout(
             (for gradients of long rollouts). With ``save_every = k``, reverse mode stores
             one state per k steps plus k inside the segment it recomputes; pick
             ``k ~ sqrt(num_steps)``.
+        include_initial: also record the initial state, first.
 
     Returns:
         ``final``: the state after ``num_steps`` steps. ``trajectory``: the states after
-        steps ``k, 2k, ..., num_steps`` stacked along a new leading axis (the initial
-        state is not included), shape ``(num_steps // k, N, ...)`` per field.
+        steps ``k, 2k, ..., num_steps`` stacked along a new leading axis, shape
+        ``(num_steps // k, N, ...)`` per field; with ``include_initial`` the initial state
+        comes first and the leading axis is one longer. Quantities derived from a
+        trajectory come from ``jax.vmap``, e.g.
+        ``jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, trajectory)``.
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}.")
@@ -135,4 +140,7 @@ def rollout(
         )
     if isinstance(step, Step):
         state = step.prepare(state)
-    return _rollout(step, params, state, num_steps, save_every, checkpoint)
+    final, trajectory = _rollout(step, params, state, num_steps, save_every, checkpoint)
+    if include_initial:
+        trajectory = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, trajectory)
+    return final, trajectory

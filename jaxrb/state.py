@@ -11,6 +11,7 @@ body frame, about the centre of mass. The body frame's origin is the centre of m
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import equinox as eqx
@@ -60,6 +61,13 @@ class Params(eqx.Module):
     angular_damping: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
     extra: Any = None
 
+    def replace(self, **changes) -> Params:
+        """A copy with some fields changed, e.g. ``params.replace(mass=params.mass * 2)``.
+
+        Not validated (it works on traced values); use :meth:`jaxrb.Scene.check_params`.
+        """
+        return dataclasses.replace(self, **changes)
+
 
 class State(eqx.Module):
     """The state of ``N`` rigid bodies (seed 000's state: x_CM, v_CM, orientation, L).
@@ -84,6 +92,10 @@ class State(eqx.Module):
     angular_momentum: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
     time: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     rotation: Float[Array, "n 3 3"] | None = None
+
+    def replace(self, **changes) -> State:
+        """A copy with some fields changed, e.g. ``state.replace(velocity=v)``."""
+        return dataclasses.replace(self, **changes)
 
 
 def rotation_matrix(state: State) -> Float[Array, "n 3 3"]:

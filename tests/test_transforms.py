@@ -200,7 +200,7 @@ def test_float32_robustness_at_high_spin(integrator):
         assert np.max(np.abs(energy / e0 - 1)) < 1e-4
     else:
         # The first-order methods drift a lot (measured: semi-implicit Euler +127%,
-        # explicit Euler -22%, identical in float64, so it is the method, not round-off).
+        # explicit Euler -22% in this axis order, identical in float64, so it is the method, not round-off).
         # Because L is exact and the attitude stays a rotation, the energy L.I^-1 L / 2
         # can never leave the band [|L|^2 / 2 I_max, |L|^2 / 2 I_min]: no blow-up, no NaN.
         l_sq = float(np.sum(np.asarray(state.angular_momentum[0], dtype=float) ** 2))
@@ -222,3 +222,18 @@ def test_debug_mode_reports_nan_inside_jit():
     loud = rb.make_step(scene, rb.integrators.RK4(), 1e-2, debug=True)
     with pytest.raises(Exception, match="NaN or infinite"):  # ... with debug it is reported
         jax.block_until_ready(rb.rollout(loud, params, state, 10))
+
+
+def test_rollout_include_initial_and_replace():
+    scene = make_scene(num_bodies=1)
+    params, state = initial(scene)
+    for integrator in INTEGRATORS:  # ExplicitEuler's carried rotation matrix included
+        step = rb.make_step(scene, integrator, 1e-2)
+        final, traj = rb.rollout(step, params, state, 20, save_every=5, include_initial=True)
+        assert traj.position.shape == (5, 1, 3)
+        np.testing.assert_array_equal(traj.position[0], state.position)
+        np.testing.assert_array_equal(traj.position[-1], final.position)
+    heavier = params.replace(mass=params.mass * 2)
+    assert float(heavier.mass[0]) == 2 * float(params.mass[0]) and heavier.inertia is params.inertia
+    moved = state.replace(position=state.position + 1.0)
+    np.testing.assert_array_equal(moved.position, state.position + 1.0)
