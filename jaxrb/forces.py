@@ -93,14 +93,15 @@ class AngularDamping(ForceModel):
         return jnp.zeros_like(torque), torque
 
 
-def _check_shape(name: str, value, expected: tuple[int, ...]) -> Array:
+def _check_shape(name: str, value, expected: tuple[int, ...], dtype) -> Array:
     value = jnp.asarray(value)
     if value.shape != expected:
         raise ValueError(
             f"{name} returned an array of shape {value.shape}; expected {expected}. "
             "User force functions return per-body arrays with the body axis first."
         )
-    return value
+    # A user function may build float64 constants under x64; keep the state's precision.
+    return value.astype(dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,8 +124,9 @@ class PointForces(ForceModel):
                 f"PointForces function returned points of shape {points.shape}; "
                 f"expected (N={n}, K, 3)."
             )
-        forces = _check_shape("PointForces function (forces)", forces, points.shape)
-        return point_forces_to_wrench(state.position, points, forces)
+        dtype = state.position.dtype
+        forces = _check_shape("PointForces function (forces)", forces, points.shape, dtype)
+        return point_forces_to_wrench(state.position, points.astype(dtype), forces)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,6 +142,7 @@ class ExternalWrench(ForceModel):
     def wrench(self, params: Params, state: State) -> Wrench:
         force, torque = self.fn(state.time, params, state)
         n = state.position.shape[0]
-        force = _check_shape("ExternalWrench function (force)", force, (n, 3))
-        torque = _check_shape("ExternalWrench function (torque)", torque, (n, 3))
+        dtype = state.position.dtype
+        force = _check_shape("ExternalWrench function (force)", force, (n, 3), dtype)
+        torque = _check_shape("ExternalWrench function (torque)", torque, (n, 3), dtype)
         return force, torque

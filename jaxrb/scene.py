@@ -18,7 +18,7 @@ import numpy as np
 
 from . import inertia as _inertia
 from . import spatial
-from .forces import ForceModel, Gravity
+from .forces import AngularDamping, ForceModel, Gravity, LinearDamping
 from .shapes import Shape
 from .state import Params, State
 
@@ -193,10 +193,14 @@ class Scene:
                 v = np.asarray(v, dtype=float)
                 if v.shape != trailing:
                     raise ValueError(f"{what}[{name!r}] must have shape {trailing}, got {v.shape}.")
+                if not np.all(np.isfinite(v)):
+                    raise ValueError(f"{what}[{name!r}] contains NaN or infinite values: {v!r}.")
                 out[self.index(name)] = v
             return jnp.asarray(out, dtype=dtype)
         if _is_traced(value):
             arr = jnp.asarray(value, dtype=dtype)
+            if arr.shape not in (trailing, (n, *trailing)):
+                raise ValueError(f"{what} must have shape {trailing} or ({n}, *{trailing}), got {arr.shape}.")
             return jnp.broadcast_to(arr, (n, *trailing))
         arr = np.asarray(value, dtype=float)
         if arr.shape == trailing:
@@ -233,6 +237,19 @@ class Scene:
         obeying the triangle inequality, finite numbers) unless they are traced.
         """
         dtype = _canonical_dtype(dtype)
+        declared = {type(m) for m in self.force_models}
+        for value, model, arg in ((linear_damping, LinearDamping, "linear_damping"),
+                                  (angular_damping, AngularDamping, "angular_damping")):
+            if model not in declared and not (np.ndim(value) == 0 and not _is_traced(value) and value == 0.0):
+                raise ValueError(
+                    f"{arg} was given but the scene has no rb.{model.__name__}(): it would be ignored. "
+                    f"Add forces=[rb.{model.__name__}()] to the Scene."
+                )
+        if gravity is not None and self.gravity is None:
+            raise ValueError(
+                "gravity was given but the scene was built with gravity=None, so no gravity is "
+                "compiled and it would be ignored. Build the Scene with gravity=(gx, gy, gz)."
+            )
         defaults_mass = np.array([b.mass for b in self.bodies])
         defaults_inertia = np.array([b.inertia for b in self.bodies])
         if mass is None:
@@ -253,12 +270,13 @@ class Scene:
                 tensor[self.index(name)] = np.diag(v) if v.shape == (3,) else v
             inertia_arr = jnp.asarray(tensor, dtype=dtype)
         else:
-            if not _is_traced(inertia):
-                arr = np.asarray(inertia, dtype=float)
-                if arr.shape[-1:] == (3,) and arr.ndim in (1, 2) and arr.shape != (3, 3):
-                    arr = arr[..., None] * np.eye(3)  # principal moments -> diagonal tensors
-                inertia = arr
-            inertia_arr = self._per_body("inertia", inertia, (3, 3), np.eye(3), dtype)
+            xp = jnp if _is_traced(inertia) else np
+            arr = xp.asarray(inertia, dtype=dtype if xp is jnp else float)
+            # (3,) or (N, 3) are principal moments; a (3, 3) is always one tensor. Shapes
+            # are static, so traced values take the same path as concrete ones.
+            if arr.ndim in (1, 2) and arr.shape[-1:] == (3,) and arr.shape != (3, 3):
+                arr = arr[..., None] * xp.eye(3, dtype=arr.dtype).reshape((1,) * (arr.ndim - 1) + (3, 3))
+            inertia_arr = self._per_body("inertia", arr, (3, 3), np.eye(3), dtype)
         if gravity is None:
             g = self.gravity if self.gravity is not None else (0.0, 0.0, 0.0)
             gravity_arr = jnp.asarray(g, dtype=dtype)
@@ -320,8 +338,9 @@ class Scene:
         ``{body_name: value}`` dict (other bodies keep the default).
 
         Args:
-            params: used to turn an angular velocity into angular momentum (default:
-                ``self.params()``).
+            params: used to turn an angular velocity into angular momentum. Default:
+                ``self.params()``, the bodies' own mass properties; pass your params if
+                you changed the inertia. Its dtype is also the state's default dtype.
             position: centres of mass (m, world). Default 0.
             orientation: unit quaternions ``(w, x, y, z)``, body to world. Default identity.
             velocity: centre-of-mass velocities (m/s, world). Default 0.
@@ -331,6 +350,16 @@ class Scene:
                 At most one of the three. Default: at rest.
             time: s.
         """
+        if params is not None:
+            if not isinstance(params, Params):
+                raise ValueError(f"params must be an rb.Params (from scene.params()), got {type(params).__name__}.")
+            if params.inertia.shape != (self.num_bodies, 3, 3):
+                raise ValueError(
+                    f"params is for {params.inertia.shape[0]} bodies (inertia shape {params.inertia.shape}); "
+                    f"this scene has {self.num_bodies}. Build it with this scene's .params()."
+                )
+            if dtype is None:
+                dtype = params.inertia.dtype
         dtype = _canonical_dtype(dtype)
         given = [k for k, v in (("angular_velocity", angular_velocity),
                                 ("body_angular_velocity", body_angular_velocity),

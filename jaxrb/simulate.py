@@ -9,6 +9,7 @@ are traced, so new values never recompile.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -84,18 +85,27 @@ def make_step(scene: Scene, integrator: Integrator, dt: float, *, debug: bool = 
 
 @eqx.filter_jit
 def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: bool):
-    def advance(s, _):
-        return step(params, s), None
+    dt = step.dt if isinstance(step, Step) else None
+    t0 = state.time
 
-    def segment(s, _):
-        s, _ = jax.lax.scan(advance, s, None, length=save_every)
+    def advance(s, k):
+        s = step(params, s)
+        if dt is not None:
+            # Accumulating t <- t + dt loses ~eps(t) per step: in float32 that is 43 ms
+            # after 1e5 steps of 1 ms. Recompute t from the step count instead.
+            s = dataclasses.replace(s, time=t0 + (k + 1).astype(t0.dtype) * dt)
+        return s, None
+
+    def segment(s, j):
+        steps = j * save_every + jnp.arange(save_every)
+        s, _ = jax.lax.scan(advance, s, steps)
         return s, s
 
     if checkpoint:
         # Rematerialise each segment in the backward pass: memory O(num_steps / save_every
         # + save_every) states instead of O(num_steps).
         segment = jax.checkpoint(segment)
-    return jax.lax.scan(segment, state, None, length=num_steps // save_every)
+    return jax.lax.scan(segment, state, jnp.arange(num_steps // save_every))
 
 
 def rollout(

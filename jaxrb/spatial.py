@@ -90,20 +90,21 @@ def safe_norm(
     ``d|x|/dx = x/|x|`` is 0/0 at the origin, and ``jnp.linalg.norm`` returns NaN there.
     The inner ``where`` keeps the square root's argument away from 0 on the masked branch,
     so that branch's (discarded) derivative is finite; the outer ``where`` selects the
-    value. The mask is per element, never one ``allclose`` over a whole batch.
+    value. The mask is per element, never one ``allclose`` over a whole batch. It tests
+    ``sq == 0`` (not ``sq > 0``) so that a NaN input stays NaN instead of becoming 0.
     """
     x = jnp.asarray(x)
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
-    ok = sq > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    zero = sq == 0
+    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
 
 
 def safe_normalize(x: Float[ArrayLike, "... n"], axis: int = -1) -> Float[Array, "... n"]:
     """``x / |x|``, returning 0 (with a finite gradient) where ``x = 0``."""
     x = jnp.asarray(x)
     n = safe_norm(x, axis=axis, keepdims=True)
-    ok = n > 0
-    return jnp.where(ok, x / jnp.where(ok, n, 1.0), 0.0)
+    zero = n == 0  # NaN stays NaN: a blow-up must not be silently reset
+    return jnp.where(zero, 0.0, x / jnp.where(zero, 1.0, n))
 
 
 def skew(w: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3 3"]:
@@ -198,11 +199,11 @@ def quat_conjugate(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
 
 
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
-    """Project onto the unit sphere. A zero quaternion becomes the identity, not NaN."""
+    """Project onto the unit sphere. A zero quaternion becomes the identity; NaN stays NaN."""
     q = jnp.asarray(q)
     n = safe_norm(q, keepdims=True)
-    ok = n > 0
-    return jnp.where(ok, q / jnp.where(ok, n, 1.0), identity_quat(q.shape[:-1], q.dtype))
+    zero = n == 0
+    return jnp.where(zero, identity_quat(q.shape[:-1], q.dtype), q / jnp.where(zero, 1.0, n))
 
 
 def quat_rotate(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
@@ -369,9 +370,10 @@ def euler_to_quat(
     ``pitch = +-pi/2`` roll and yaw become indistinguishable (gimbal lock). jaxrb stores
     quaternions; Euler angles are for input and display only.
     """
-    ex = jnp.asarray([1.0, 0.0, 0.0])
-    ey = jnp.asarray([0.0, 1.0, 0.0])
-    ez = jnp.asarray([0.0, 0.0, 1.0])
+    dtype = jnp.result_type(roll, pitch, yaw, float)
+    ex = jnp.asarray([1.0, 0.0, 0.0], dtype=dtype)
+    ey = jnp.asarray([0.0, 1.0, 0.0], dtype=dtype)
+    ez = jnp.asarray([0.0, 0.0, 1.0], dtype=dtype)
     qx = quat_from_axis_angle(ex, roll)
     qy = quat_from_axis_angle(ey, pitch)
     qz = quat_from_axis_angle(ez, yaw)

@@ -90,3 +90,26 @@ def first_sign_change(times, values):
     idx = np.flatnonzero(s[1:] != s[:-1])[0]
     t0, t1, v0, v1 = times[idx], times[idx + 1], values[idx], values[idx + 1]
     return t0 - v0 * (t1 - t0) / (v1 - v0)
+
+
+def forced_body_world_frame(mass, inertia_body, force_fn, torque_fn, x0, v0, q0, l0, times,
+                            rtol=1e-13, atol=1e-14):
+    """A body under time-dependent world force ``F(t)`` and torque ``tau(t)`` (about the com).
+
+    ``x' = v``, ``v' = F/m``, ``L' = tau``, ``q' = (0, w) q / 2`` with
+    ``w = R I_body^-1 R^T L``, by scipy's DOP853. Returns ``(x, v, q, L)`` at ``times``.
+    """
+    inertia_inv = np.linalg.inv(np.asarray(inertia_body, float))
+
+    def rhs(t, y):
+        v, q, l_world = y[3:6], y[6:10], y[10:]
+        r = quat_to_matrix(q)
+        omega = r @ inertia_inv @ r.T @ l_world
+        dq = 0.5 * _qmul(np.concatenate([[0.0], omega]), q)
+        return np.concatenate([v, force_fn(t) / mass, dq, torque_fn(t)])
+
+    y0 = np.concatenate([x0, v0, q0, l0]).astype(float)
+    sol = solve_ivp(rhs, (0.0, float(times[-1])), y0, method="DOP853", t_eval=times, rtol=rtol, atol=atol)
+    assert sol.success
+    y = sol.y.T
+    return y[:, :3], y[:, 3:6], y[:, 6:10] / np.linalg.norm(y[:, 6:10], axis=1, keepdims=True), y[:, 10:]

@@ -78,7 +78,34 @@ def test_invalid_scenes(make, match):
 )
 def test_invalid_params(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        scene_of(BALL).params(**kwargs)
+        scene_of(BALL, forces=[rb.LinearDamping()]).params(**kwargs)
+
+
+def test_params_for_undeclared_force_models_are_refused():
+    # They would be silently ignored by the compiled step.
+    with pytest.raises(ValueError, match=r"no rb.LinearDamping\(\)"):
+        scene_of(BALL).params(linear_damping=0.5)
+    with pytest.raises(ValueError, match=r"no rb.AngularDamping\(\)"):
+        scene_of(BALL, forces=[rb.LinearDamping()]).params(angular_damping={"ball": 0.1})
+    with pytest.raises(ValueError, match="gravity=None"):
+        scene_of(BALL, gravity=None).params(gravity=(0.0, 0.0, -9.81))
+
+
+def test_params_from_another_scene_are_refused():
+    two = scene_of(BALL, rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
+    with pytest.raises(ValueError, match="this scene has 2"):
+        two.state(scene_of(BALL).params(), angular_velocity=(1.0, 0.0, 0.0))
+
+
+def test_traced_principal_moments_build_the_same_tensor():
+    import jax
+
+    scene = scene_of(BALL)
+    moments = jnp.array([1.0, 2.0, 2.5])
+    eager = scene.params(inertia=moments).inertia
+    traced = jax.jit(lambda i: scene.params(inertia=i).inertia)(moments)
+    np.testing.assert_array_equal(traced, eager)
+    np.testing.assert_array_equal(eager[0], np.diag([1.0, 2.0, 2.5]))
 
 
 @pytest.mark.parametrize(
@@ -93,6 +120,10 @@ def test_invalid_params(kwargs, match):
         ({"orientation": (0.0, 0.0, 0.0, 0.0)}, "unit quaternion"),
         ({"angular_velocity": (1.0, 0, 0), "angular_momentum": (1.0, 0, 0)}, "at most one"),
         ({"time": float("nan")}, "time"),
+        ({"position": {"ball": (float("nan"), 0.0, 0.0)}}, "NaN"),
+        ({"velocity": {"ball": (float("inf"), 0.0, 0.0)}}, "NaN or infinite"),
+        ({"angular_velocity": {"ball": (float("nan"), 0.0, 0.0)}}, "NaN"),
+        ({"orientation": {"ball": (float("nan"), 0.0, 0.0, 0.0)}}, "NaN"),
     ],
 )
 def test_invalid_states(kwargs, match):

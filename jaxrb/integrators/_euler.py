@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
+import equinox as eqx
+import jax.numpy as jnp
+
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, angular_velocity, inverse_inertia_body
@@ -28,7 +31,9 @@ class ExplicitEuler(Integrator):
     and ``I^-1 = A I_body^-1 A^T``, ``omega = I^-1 L`` are recomputed from the new ``A`` at
     the start of the next step. The matrix is carried in ``State.rotation``; the
     quaternion ``State.orientation`` is refreshed from it after every step for display
-    and for the other helpers.
+    and for the other helpers. Once a state carries ``rotation``, that matrix *is* the
+    attitude: to change the attitude of a prepared state, set ``rotation`` (or set it to
+    ``None`` and ``prepare`` again), not ``orientation``.
 
     * Order 1 in every variable.
     * Conserves ``L`` exactly when torque-free (it is the state, so ``L <- L + 0``).
@@ -46,7 +51,7 @@ class ExplicitEuler(Integrator):
       even the reorthonormalised method inaccurate, though it stays bounded.
     """
 
-    reorthonormalize: bool = True
+    reorthonormalize: bool = eqx.field(default=True, static=True)
     order: ClassVar[int] = 1
 
     def prepare(self, state: State) -> State:
@@ -62,9 +67,14 @@ class ExplicitEuler(Integrator):
         a = a + dt * spatial.matmul(spatial.skew(omega), a)
         if self.reorthonormalize:
             a = spatial.gram_schmidt(a)
+        # matrix_to_quat returns w >= 0; keep q in the previous step's hemisphere so the
+        # quaternion is continuous in time (q and -q are the same attitude).
+        orientation = spatial.matrix_to_quat(a)
+        same_side = spatial.dot(orientation, state.orientation)[..., None] >= 0
+        orientation = jnp.where(same_side, orientation, -orientation)
         return State(
             position=state.position + dt * state.velocity,
-            orientation=spatial.matrix_to_quat(a),
+            orientation=orientation,
             velocity=state.velocity + dt * linear_acceleration(params, force),
             angular_momentum=state.angular_momentum + dt * torque,
             time=state.time + dt,
