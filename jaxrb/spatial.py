@@ -63,9 +63,25 @@ _SMALL_ANGLE_SQ = 1e-6
 # --------------------------------------------------------------------------- vectors
 
 
+def _sum_last(x: Array) -> Array:
+    """Sum over a short last axis as explicit element-wise adds, not a reduce op.
+
+    XLA:CPU (jax 0.10) hands reduce ops over length-3/4 axes of large batches to
+    YNNPACK kernels that are several times slower than fused element-wise code
+    (benchmarks/free_body.py). Unrolling keeps the whole step one fused loop.
+    """
+    n = x.shape[-1]
+    if n > 4:
+        return jnp.sum(x, axis=-1)
+    total = x[..., 0]
+    for i in range(1, n):
+        total = total + x[..., i]
+    return total
+
+
 def dot(a: Float[ArrayLike, "... n"], b: Float[ArrayLike, "... n"]) -> Float[Array, "..."]:
     """Element-wise dot product over the last axis (exact: no matmul unit)."""
-    return jnp.sum(jnp.asarray(a) * jnp.asarray(b), axis=-1)
+    return _sum_last(jnp.asarray(a) * jnp.asarray(b))
 
 
 def cross(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
@@ -94,7 +110,11 @@ def safe_norm(
     ``sq == 0`` (not ``sq > 0``) so that a NaN input stays NaN instead of becoming 0.
     """
     x = jnp.asarray(x)
-    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    if axis in (-1, x.ndim - 1):
+        sq = _sum_last(x * x)
+        sq = sq[..., None] if keepdims else sq
+    else:
+        sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     zero = sq == 0
     return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
 
@@ -136,14 +156,14 @@ def vee(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 3"]:
 
 def matvec(m: Float[ArrayLike, "... 3 3"], v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """``M @ v`` element-wise (exact in every dtype; see the module docstring)."""
-    return jnp.sum(jnp.asarray(m) * jnp.asarray(v)[..., None, :], axis=-1)
+    return _sum_last(jnp.asarray(m) * jnp.asarray(v)[..., None, :])
 
 
 def matmul(a: Float[ArrayLike, "... 3 3"], b: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 3 3"]:
     """``A @ B`` for 3x3 matrices, element-wise (exact in every dtype)."""
     a = jnp.asarray(a)
     b = jnp.asarray(b)
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+    return _sum_last(a[..., :, None, :] * transpose(b)[..., None, :, :])
 
 
 def transpose(m: Float[ArrayLike, "... i j"]) -> Float[Array, "... j i"]:
@@ -303,7 +323,7 @@ def quat_exp(rotation_vector: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"
     Seed 001 ("rotate by theta = |omega| dt about omega") is ``quat_exp(omega * dt)``.
     """
     r = jnp.asarray(rotation_vector)
-    theta_sq = jnp.sum(r * r, axis=-1, keepdims=True)
+    theta_sq = _sum_last(r * r)[..., None]
     small = theta_sq < _SMALL_ANGLE_SQ
     cos_half = jnp.where(
         small,
@@ -323,7 +343,7 @@ def quat_log(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:
     q = jnp.where(q[..., :1] < 0, -q, q)
     w = q[..., :1]
     v = q[..., 1:]
-    s_sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    s_sq = _sum_last(v * v)[..., None]
     small = s_sq < _SMALL_ANGLE_SQ
     s = jnp.sqrt(jnp.where(small, 1.0, s_sq))
     # atan2(s, w)/s = atan(t)/(w t) with t = s/w -> 1/w as s -> 0 (w -> 1 there).
