@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxrb import shapes
-from jaxrb.spatial import cross, dot, matmul, matvec, quat_to_matrix, skew, transpose
+from jaxrb.spatial import cross, dot, matmul, matrix_to_quat, matvec, quat_to_matrix, skew, transpose
 
 __all__ = [
     "MassProperties",
@@ -120,6 +120,23 @@ class MassProperties(eqx.Module):
         ``I_point = I + m (|d|^2 E - d d^T)`` with ``d = com - point``.
         """
         return self.inertia + _parallel_axis(self.mass, self.com - jnp.asarray(point))
+
+    def principal(self) -> tuple[MassProperties, Float[Array, "4"]]:
+        """The same part described in its principal frame, and where that frame sits.
+
+        Returns:
+            ``(principal_part, orientation)``: ``principal_part`` has ``com = 0`` and a
+            diagonal inertia with ascending moments; ``orientation`` is the unit
+            quaternion (scalar first) of the principal axes in this part's frame, so
+            ``principal_part.transformed(self.com, orientation)`` is ``self`` again. Use
+            it to build a body whose body axes are its principal axes (e.g. to spin it
+            about its intermediate axis), and to place that body in the world.
+        """
+        moments, axes = principal_axes(self.inertia)
+        zero = jnp.zeros_like(self.com)
+        eye = jnp.eye(3, dtype=moments.dtype)
+        part = MassProperties(self.mass, zero, eye * moments[None, :])
+        return part, matrix_to_quat(axes)
 
 
 def _central(mass: ArrayLike, ix: ArrayLike, iy: ArrayLike, iz: ArrayLike) -> MassProperties:

@@ -18,7 +18,7 @@ from scipy.integrate import cubature  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import jaxrb.inertia as inertia  # noqa: E402
-from jaxrb import shapes  # noqa: E402
+from jaxrb import shapes, spatial  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 
@@ -861,3 +861,17 @@ def test_density_gradient_through_mass_properties():
     shape = shapes.Cylinder(0.2, 0.5)
     grad = jax.grad(lambda rho: inertia.mass_properties(shape, density=rho).inertia[2, 2])(1000.0)
     np.testing.assert_allclose(float(grad), 0.5 * inertia.volume(shape) * 0.2**2, rtol=1e-14)
+
+
+def test_principal_frame_round_trip():
+    """A composed, non-diagonal part re-expressed in its principal frame, and back."""
+    rod = inertia.cylinder(2.0, 0.1, 0.5)
+    tilted = inertia.box(1.0, jnp.array([0.3, 0.1, 0.2])).transformed(
+        jnp.array([0.2, -0.1, 0.4]), spatial.quat_from_axis_angle(jnp.array([1.0, 1.0, 0.0]), 0.7))
+    part = inertia.compose([rod, tilted])
+    principal, orientation = part.principal()
+    assert float(jnp.max(jnp.abs(principal.inertia - jnp.diag(jnp.diagonal(principal.inertia))))) == 0.0
+    assert bool(jnp.all(jnp.diff(jnp.diagonal(principal.inertia)) >= 0))
+    back = principal.transformed(part.com, orientation)
+    np.testing.assert_allclose(back.inertia, part.inertia, atol=1e-12)
+    np.testing.assert_allclose(back.com, part.com, atol=1e-15)
