@@ -69,9 +69,8 @@ def free_body_scene() -> rb.Scene:
     return rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0)], gravity=(0, 0, -9.81))
 
 
-def jaxrb_problem(scene: rb.Scene, integrator, dtype, num_steps: int):
-    """``(rollout_fn, params, state)`` with ``rollout_fn(params, state) -> final state``."""
-    step = rb.make_step(scene, integrator, dt=DT)
+def initial_condition(scene: rb.Scene, dtype):
+    """The params and spinning, moving initial state shared by jaxrb and the bare baseline."""
     params = scene.params(dtype=dtype)
     state = scene.state(
         params,
@@ -79,6 +78,13 @@ def jaxrb_problem(scene: rb.Scene, integrator, dtype, num_steps: int):
         body_angular_velocity=INITIAL_BODY_ANGULAR_VELOCITY,
         dtype=dtype,
     )
+    return params, state
+
+
+def jaxrb_problem(scene: rb.Scene, integrator, dtype, num_steps: int):
+    """``(rollout_fn, params, state)`` with ``rollout_fn(params, state) -> final state``."""
+    step = rb.make_step(scene, integrator, dt=DT)
+    params, state = initial_condition(scene, dtype)
     # ExplicitEuler carries its rotation matrix; add it before batching so the scan
     # carry has the same structure on entry and exit.
     state = step.prepare(state)
@@ -147,13 +153,7 @@ def bare_step(p: BareParams, s: BareState) -> BareState:
 
 def bare_problem(scene: rb.Scene, dtype, num_steps: int):
     """The bare baseline from the same initial condition as :func:`jaxrb_problem`."""
-    params = scene.params(dtype=dtype)
-    state = scene.state(
-        params,
-        velocity=INITIAL_VELOCITY,
-        body_angular_velocity=INITIAL_BODY_ANGULAR_VELOCITY,
-        dtype=dtype,
-    )
+    params, state = initial_condition(scene, dtype)
     bare_params = BareParams(jnp.linalg.inv(params.inertia[0]), params.gravity)
     bare_state = BareState(
         state.position[0], state.orientation[0], state.velocity[0], state.angular_momentum[0]
