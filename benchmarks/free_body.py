@@ -22,6 +22,7 @@ How to run (from the repository root)
     python benchmarks/free_body.py --x64                  # float64
     python benchmarks/free_body.py --envs 1 256 --steps 500 --repeats 5
     python benchmarks/free_body.py --quick                # CI smoke run, writes to a temp dir
+    python benchmarks/free_body.py --devices 2            # ensembles split over 2 CPU devices (cores)
 
 It prints a table and writes ``free_body.json`` and ``free_body.png`` to ``--out``
 (default ``benchmarks/results``; with ``--quick``, a fresh temporary directory).
@@ -174,17 +175,24 @@ def batched(tree, envs: int):
     return jax.tree.map(lambda x: jnp.array(jnp.broadcast_to(x, (envs, *x.shape))), tree)
 
 
-def measure(rollout_fn, params, state, envs: int, num_steps: int, repeats: int, shared_params: bool = False):
+def measure(rollout_fn, params, state, envs: int, num_steps: int, repeats: int, shared_params: bool = False,
+            devices: int = 1):
     """``(steps_per_second, compile_seconds, final_state)`` for ``envs`` environments.
 
     With ``shared_params`` only the state is batched: one set of params (still a traced
     argument of the compiled function, so nothing is constant-folded) drives every
-    environment, as in an ensemble of initial conditions.
+    environment, as in an ensemble of initial conditions. With ``devices > 1`` the
+    batched arrays are split over that many devices with :func:`jaxrb.shard_ensemble`
+    (ensembles that do not divide evenly, and a single environment, stay on one).
     """
     fn = rollout_fn if envs == 1 else jax.vmap(rollout_fn, in_axes=(None if shared_params else 0, 0))
     if envs > 1:
         params = params if shared_params else batched(params, envs)
         state = batched(state, envs)
+        if devices > 1 and envs % devices == 0:
+            state = rb.shard_ensemble(state, jax.devices()[:devices])
+            if not shared_params:
+                params = rb.shard_ensemble(params, jax.devices()[:devices])
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(params, state).compile()
     compile_seconds = time.perf_counter() - t0
@@ -282,6 +290,10 @@ def parse_args(argv=None):
     p.add_argument("--shared-params", action="store_true",
                    help="vmap over states only (one params for all environments); "
                         "writes free_body_shared_params.{json,png}")
+    p.add_argument("--devices", type=int, default=1,
+                   help="split each ensemble over this many devices with rb.shard_ensemble; on CPU "
+                        "this asks JAX for that many CPU devices (one per core); "
+                        "writes free_body[_shared_params]_<D>dev.{json,png}")
     p.add_argument("--quick", action="store_true",
                    help="CI smoke run: envs 1 8, 20 steps, 1 repeat, output to a temp dir")
     p.add_argument("--out", type=Path, default=None,
@@ -291,8 +303,8 @@ def parse_args(argv=None):
         args.envs, args.steps, args.repeats = [1, 8], 20, 1
     if args.out is None:
         args.out = Path(tempfile.mkdtemp(prefix="free_body_")) if args.quick else DEFAULT_OUT
-    if min(args.envs) < 1 or args.steps < 1 or args.repeats < 1:
-        p.error("--envs, --steps and --repeats must be positive")
+    if min(args.envs) < 1 or args.steps < 1 or args.repeats < 1 or args.devices < 1:
+        p.error("--envs, --steps, --repeats and --devices must be positive")
     return args
 
 
@@ -302,10 +314,19 @@ def main(argv=None):
         # Before any array is created. Without --x64 the flag is left as it is: every
         # array here is built with an explicit dtype, so float32 runs either way.
         jax.config.update("jax_enable_x64", True)
+    if args.devices > 1:
+        # A CPU shows one device unless asked before JAX starts; jaxrb itself never asks.
+        # (Calling jax.devices() first would start JAX, so the request comes first.)
+        try:
+            jax.config.update("jax_num_cpu_devices", args.devices)
+        except RuntimeError as err:  # JAX already running (e.g. main() called from a test)
+            raise SystemExit(f"--devices {args.devices}: {err}") from None
+        if len(jax.devices()) < args.devices:
+            raise SystemExit(f"--devices {args.devices}: only {len(jax.devices())} devices available")
     dtype = jnp.float64 if args.x64 else jnp.float32
     envs_list = sorted(set(args.envs))
     device = jax.devices()[0]
-    print(f"jax {jax.__version__} on {device.platform} ({device.device_kind}), "
+    print(f"jax {jax.__version__} on {device.platform} ({device.device_kind}) x {args.devices}, "
           f"{os.cpu_count()} CPUs, {jnp.dtype(dtype).name}, {args.steps} steps per call, "
           f"best of {args.repeats}", flush=True)
 
@@ -320,7 +341,8 @@ def main(argv=None):
         else:
             problem = jaxrb_problem(scene, INTEGRATORS[name](), dtype, args.steps)
         for envs in envs_list:
-            rate, compile_s, final = measure(*problem, envs, args.steps, args.repeats, args.shared_params)
+            rate, compile_s, final = measure(*problem, envs, args.steps, args.repeats, args.shared_params,
+                                             args.devices)
             if final.position.dtype != dtype:
                 raise AssertionError(f"{name} ran in {final.position.dtype}, not {dtype}")
             row = dict(integrator=name, envs=envs, steps_per_second=rate,
@@ -343,6 +365,7 @@ def main(argv=None):
         description="env-steps/s of one free box under gravity with rotation, dt = 1 ms; "
                     "jax.jit(jax.vmap(rollout)) with save_every = steps; best of repeats",
         ensemble="states only, shared params" if args.shared_params else "params and states",
+        devices=args.devices,
         date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         command=" ".join([Path(sys.executable).name, *sys.argv]),
         jax_version=jax.__version__,
@@ -362,9 +385,10 @@ def main(argv=None):
     )
     args.out.mkdir(parents=True, exist_ok=True)
     stem = "free_body_shared_params" if args.shared_params else "free_body"
+    stem += f"_{args.devices}dev" if args.devices > 1 else ""
     json_path, png_path = args.out / f"{stem}.json", args.out / f"{stem}.png"
     json_path.write_text(json.dumps(record, indent=2) + "\n")
-    title = (f"free body, {record['dtype']}, {record['ensemble']}, {args.steps} steps/call, "
+    title = (f"free body, {record['dtype']}, {record['ensemble']}, {args.devices} device(s), {args.steps} steps/call, "
              f"jax {jax.__version__}, {record['cpu_count']} CPU cores")
     if record["xla_flags"]:
         title += f"\nXLA_FLAGS={record['xla_flags']}"

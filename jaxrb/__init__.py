@@ -4,12 +4,14 @@ The public API is re-exported here; modules are named after the physics they hol
 """
 
 from . import dynamics as dynamics
+from . import ensemble as ensemble
 from . import forces as forces
 from . import inertia as inertia
 from . import integrators as integrators
 from . import kinematics as kinematics
 from . import shapes as shapes
 from . import spatial as spatial
+from .ensemble import shard_ensemble as shard_ensemble
 from .forces import AngularDamping as AngularDamping
 from .forces import ExternalWrench as ExternalWrench
 from .forces import Gravity as Gravity

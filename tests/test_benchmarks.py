@@ -2,7 +2,10 @@
 
 import importlib.util
 import json
+import os
 import pathlib
+import subprocess
+import sys
 
 import pytest
 
@@ -23,3 +26,16 @@ def test_free_body_benchmark_quick(tmp_path, extra):
     record = json.loads((tmp_path / f"{stem}.json").read_text())
     assert {r["integrator"] for r in record["results"]} >= {"ExplicitEuler", "SemiImplicitEuler", "RK4"}
     assert (tmp_path / f"{stem}.png").stat().st_size > 0
+
+
+def test_free_body_benchmark_quick_on_two_cpu_devices(tmp_path):
+    # --devices asks JAX for two CPU devices, which only works before JAX starts: a fresh process.
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "free_body.py"), "--quick", "--devices", "2",
+         "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=300, env=env,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    record = json.loads((tmp_path / "free_body_2dev.json").read_text())
+    assert record["devices"] == 2 and (tmp_path / "free_body_2dev.png").stat().st_size > 0
