@@ -5,12 +5,17 @@ The public API is re-exported here; modules are named after the physics they hol
 
 from . import dynamics as dynamics
 from . import ensemble as ensemble
+from . import exact as exact
 from . import forces as forces
 from . import inertia as inertia
 from . import integrators as integrators
 from . import kinematics as kinematics
+from . import ode as ode
 from . import shapes as shapes
 from . import spatial as spatial
+from ._tradeoff import TradeoffResult as TradeoffResult
+from ._tradeoff import plot_tradeoff as plot_tradeoff
+from ._tradeoff import tradeoff as tradeoff
 from .ensemble import shard_ensemble as shard_ensemble
 from .forces import AngularDamping as AngularDamping
 from .forces import ExternalWrench as ExternalWrench

@@ -9,7 +9,7 @@ import pytest
 import jaxrb as rb
 from jaxrb import spatial
 
-INTEGRATORS = [rb.integrators.ExplicitEuler(), rb.integrators.SemiImplicitEuler(), rb.integrators.RK4()]
+INTEGRATORS = [getattr(rb.integrators, name)() for name in rb.integrators.__all__ if name != "Integrator"]
 IDS = [type(i).__name__ for i in INTEGRATORS]
 
 
@@ -127,21 +127,18 @@ def test_gradients_of_a_one_second_rollout_match_finite_differences(integrator):
     i0 = params.inertia[0]
     args = (jnp.asarray(params.mass[0]), jnp.array([i0[0, 0], i0[1, 1], i0[2, 2], 0.001, -0.002, 0.0015]),
             jnp.array([1.0, -0.5, 2.0]), jnp.array([0.4, 3.0, -1.0]))
-    grads = jax.grad(loss, argnums=(0, 1, 2, 3))(*args)
-    fwd = jax.jacfwd(loss, argnums=(0, 1, 2, 3))(*args)
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(*args)
+    fwd = jax.jit(jax.jacfwd(loss, argnums=(0, 1, 2, 3)))(*args)
+    # Every perturbed loss in one compiled, vmapped call (one compile instead of 26).
+    batched_loss = jax.jit(jax.vmap(loss))
     eps = 1e-6
     for k, (arg, g, gf) in enumerate(zip(args, grads, fwd, strict=True)):
         flat = np.atleast_1d(np.asarray(arg, dtype=float))
-        fd = np.zeros_like(flat)
-        for j in range(flat.size):
-            up, down = flat.copy(), flat.copy()
-            up[j] += eps
-            down[j] -= eps
-            a_up = list(args)
-            a_dn = list(args)
-            a_up[k] = jnp.asarray(up.reshape(np.shape(arg)))
-            a_dn[k] = jnp.asarray(down.reshape(np.shape(arg)))
-            fd[j] = (loss(*a_up) - loss(*a_dn)) / (2 * eps)
+        shifts = np.concatenate([np.eye(flat.size), -np.eye(flat.size)]) * eps
+        batch = [jnp.broadcast_to(a, (len(shifts), *np.shape(a))) for a in args]
+        batch[k] = jnp.asarray((flat[None] + shifts).reshape(len(shifts), *np.shape(arg)))
+        values = np.asarray(batched_loss(*batch))
+        fd = (values[: flat.size] - values[flat.size :]) / (2 * eps)
         # Acceptance: <= 1e-6 relative, entry by entry. Central differences with eps = 1e-6
         # in float64 are accurate to ~1e-9 here, so 1e-6 tests the gradient, not the
         # reference; the 1e-10 absolute floor only matters for entries that are ~0.
@@ -190,11 +187,16 @@ def test_float32_robustness_at_high_spin(integrator):
         assert np.all(np.isfinite(leaf))
     # |q| = 1 to float32 round-off (the quaternion is renormalised each step).
     np.testing.assert_allclose(np.linalg.norm(traj.orientation[:, 0], axis=-1), 1.0, atol=1e-6)
+    energy = np.asarray(jax.vmap(lambda s: rb.kinetic_energy(params, s))(traj))[:, 0]
+    e0 = float(rb.kinetic_energy(params, state)[0])
+    if isinstance(integrator, rb.integrators.ImplicitGyroscopic):
+        # The one method that recomputes L (from the implicit body-frame solve): it is
+        # dissipative instead, energy never rising above float32 round-off (2.4e-7 per step).
+        assert np.all(np.diff(energy) <= 1e-5 * e0)
+        return
     # L is the state: torque-free it is exactly unchanged, in any precision.
     l_start = jnp.broadcast_to(state.angular_momentum, traj.angular_momentum.shape)
     np.testing.assert_array_equal(traj.angular_momentum, l_start)
-    energy = np.asarray(jax.vmap(lambda s: rb.kinetic_energy(params, s))(traj))[:, 0]
-    e0 = float(rb.kinetic_energy(params, state)[0])
     if integrator.order == 4:
         # RK4 stays at float32 round-off plus its O(h^4) drift (measured 3.8e-5).
         assert np.max(np.abs(energy / e0 - 1)) < 1e-4

@@ -6,49 +6,13 @@ import dataclasses
 from typing import ClassVar
 
 import jax
-import jax.numpy as jnp
 
 from .. import spatial
-from ..dynamics import quat_derivative, wrench
-from ..state import Params, State, inverse_inertia_body
+from ..dynamics import stage_derivative
+from ..state import Params, State
 from ._base import Integrator
 
 __all__ = ["RK4"]
-
-
-def _stage_derivative(scene, params: Params, state: State):
-    """The L-form right-hand side, extended smoothly off the unit sphere of quaternions.
-
-    Stage quaternions ``q + c dt k`` are not unit. Forces and ``omega`` are evaluated at
-    the normalised attitude, and ``q' = (0, omega) q / 2`` uses the raw ``q``. This is a
-    smooth ODE on R^4 whose exact flow keeps ``|q|`` (the product of a pure quaternion
-    with ``q`` is orthogonal to ``q``), so plain RK4 on it keeps its fourth order.
-    Normalising the stage quaternions instead would change the stage slopes by O(dt^2)
-    and cost two orders.
-    """
-    q_raw = state.orientation
-    norm = spatial.safe_norm(q_raw, keepdims=True)
-    unit = dataclasses.replace(state, orientation=q_raw / norm)
-    force, torque = wrench(scene, params, unit)
-
-    def kinematics(mass, inverse_inertia_body, q_unit, q, velocity, angular_momentum, f):
-        # One body: omega = A I_body^-1 A^T L and q' = (0, omega) q_raw / 2. Vmapped over
-        # the body axis for the component-major code XLA then emits (see SemiImplicitEuler).
-        l_body = spatial.quat_rotate_inverse(q_unit, angular_momentum)
-        omega = spatial.quat_rotate(q_unit, spatial.matvec(inverse_inertia_body, l_body))
-        return quat_derivative(omega, q), f / mass
-
-    q_dot, acceleration = jax.vmap(kinematics)(
-        params.mass, inverse_inertia_body(params), unit.orientation, q_raw, state.velocity,
-        state.angular_momentum, force,
-    )
-    return State(
-        position=state.velocity,
-        orientation=q_dot,
-        velocity=acceleration,
-        angular_momentum=torque,
-        time=jnp.ones_like(state.time),
-    )
 
 
 def _axpy(h, k: State, s: State) -> State:
@@ -79,10 +43,10 @@ class RK4(Integrator):
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         # A rotation matrix, if the state carries one, is refreshed from q at the end.
         carried = dataclasses.replace(state, rotation=None)
-        k1 = _stage_derivative(scene, params, carried)
-        k2 = _stage_derivative(scene, params, _axpy(0.5 * dt, k1, carried))
-        k3 = _stage_derivative(scene, params, _axpy(0.5 * dt, k2, carried))
-        k4 = _stage_derivative(scene, params, _axpy(dt, k3, carried))
+        k1 = stage_derivative(scene, params, carried)
+        k2 = stage_derivative(scene, params, _axpy(0.5 * dt, k1, carried))
+        k3 = stage_derivative(scene, params, _axpy(0.5 * dt, k2, carried))
+        k4 = stage_derivative(scene, params, _axpy(dt, k3, carried))
         slope = jax.tree.map(lambda a, b, c, d: (a + 2.0 * b + 2.0 * c + d) / 6.0, k1, k2, k3, k4)
         new = _axpy(dt, slope, carried)
         orientation = spatial.quat_normalize(new.orientation)

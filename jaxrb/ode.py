@@ -1,0 +1,371 @@
+"""The diffrax bridge: adaptive, error-controlled solves of a scene's equations of motion.
+
+The fixed-step integrators of :mod:`jaxrb.integrators` advance the state by a chosen
+``dt``. Here the same Newton-Euler L-form equations (seeds 000 and 001)::
+
+    x' = v,   v' = F / m,   L' = tau,   q' = (0, omega) q / 2,   omega = A I_body^-1 A^T L
+
+are handed to `diffrax <https://docs.kidger.site/diffrax/>`_, whose embedded Runge-Kutta
+pairs pick their own step sizes to meet a tolerance. Use it as an accurate reference (the
+work-precision benchmark in :func:`jaxrb.tradeoff` does), or when a tolerance is easier to
+state than a step size.
+
+Supported and tested solvers (order of the propagated solution / of the embedded error
+estimate): ``diffrax.Tsit5()`` (5 / 4, the default), ``diffrax.Dopri5()`` (5 / 4) and
+``diffrax.Dopri8()`` (8 / 7). Other explicit adaptive diffrax solvers run too, with
+diffrax's default controller coefficients.
+
+Everything composes with ``jax.jit``, ``jax.vmap`` and ``jax.grad``: the scene is static,
+``params``, ``state`` and the tolerances are traced (new values never recompile), and
+gradients flow through the solve (discretise-then-optimise,
+``diffrax.RecursiveCheckpointAdjoint`` by default; ``diffrax.ForwardMode()`` for
+``jax.jacfwd``).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from . import spatial
+from .dynamics import stage_derivative
+from .scene import Scene
+from .state import Params, State
+
+__all__ = ["OdeState", "VectorField", "vector_field", "default_controller", "Solution", "solve"]
+
+
+class OdeState(eqx.Module):
+    """The part of a :class:`jaxrb.State` that diffrax integrates; time is diffrax's ``t``.
+
+    Attributes:
+        position: ``(N, 3)`` m, centre of mass, world frame.
+        orientation: ``(N, 4)`` quaternion ``(w, x, y, z)``, body to world. Inside a solve
+            it is a vector of R^4 whose norm the exact flow keeps; it is normalised only
+            when a :class:`jaxrb.State` is handed back.
+        velocity: ``(N, 3)`` m/s, world frame.
+        angular_momentum: ``(N, 3)`` kg m^2/s, about the centre of mass, world frame.
+    """
+
+    position: Float[Array, "n 3"]
+    orientation: Float[Array, "n 4"]
+    velocity: Float[Array, "n 3"]
+    angular_momentum: Float[Array, "n 3"]
+
+    @classmethod
+    def from_state(cls, state: State) -> OdeState:
+        return cls(state.position, state.orientation, state.velocity, state.angular_momentum)
+
+    def to_state(self, t, *, normalize: bool = True) -> State:
+        """A :class:`jaxrb.State` at time ``t`` (s); the quaternion is normalised unless told not to."""
+        q = spatial.quat_normalize(self.orientation) if normalize else self.orientation
+        return State(
+            position=self.position,
+            orientation=q,
+            velocity=self.velocity,
+            angular_momentum=self.angular_momentum,
+            time=jnp.asarray(t, dtype=self.position.dtype),
+        )
+
+
+class VectorField(eqx.Module):
+    """``f(t, y, params) -> dy/dt`` for ``diffrax.ODETerm``; ``y`` and ``dy/dt`` are :class:`OdeState`.
+
+    Forces come from the scene's declared force models (:func:`jaxrb.dynamics.wrench`)
+    with ``state.time = t``, so user force functions see the solver's time. Forces and
+    ``omega`` are evaluated at the normalised quaternion while ``q'`` multiplies the raw
+    ``q``: a smooth ODE on R^4 whose exact flow keeps ``|q|`` constant, so the solver's
+    order is unchanged (the same right-hand side as :class:`jaxrb.integrators.RK4`'s stages).
+    The scene is a static field: equal scenes share compiled code.
+    """
+
+    scene: Scene = eqx.field(static=True)
+
+    def __call__(self, t, y: OdeState, params: Params) -> OdeState:
+        derivative = stage_derivative(self.scene, params, y.to_state(t, normalize=False))
+        return OdeState.from_state(derivative)
+
+
+def vector_field(scene: Scene) -> VectorField:
+    """The L-form right-hand side of ``scene`` as a diffrax vector field.
+
+    Example::
+
+        term = diffrax.ODETerm(rb.ode.vector_field(scene))
+        sol = diffrax.diffeqsolve(term, diffrax.Tsit5(), t0, t1, None, rb.ode.OdeState.from_state(state),
+                                  args=params, stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10))
+    """
+    _check_scene(scene, "vector_field")
+    return VectorField(scene)
+
+
+# Step-size controller coefficients per solver. diffrax's PIDController takes
+# h_new = h * safety * err_n^-(pcoeff + icoeff)/k * err_{n-1}^(pcoeff/k), with k the error
+# order (5 for Tsit5 and Dopri5, 8 for Dopri8); its own default is plain I control
+# (pcoeff = 0, icoeff = 1), and its docs give no per-solver advice beyond listing PI
+# choices from the literature. So these are the defaults of the solvers' reference codes
+# (Hairer's DOPRI5 and DOP853, and OrdinaryDiffEq.jl's Tsit5), rewritten in diffrax's
+# parametrisation (beta1 = (pcoeff + icoeff)/k, beta2 = pcoeff/k):
+# * Tsit5: PI with beta1 = 0.7/k, beta2 = 0.4/k -> pcoeff 0.4, icoeff 0.3 (also the first
+#   PI choice the diffrax docs list).
+# * Dopri5: DOPRI5's beta = 0.04, beta1 = 1/5 - 0.75 * 0.04 -> pcoeff 0.2, icoeff 0.65.
+# * Dopri8: DOP853 uses I control, with the step ratio bounded to [1/3, 6].
+# Why PI: the proportional term damps the accept/reject oscillation of the step size,
+# and a tumbling body's error estimate swings with its attitude. Measured on the
+# asymmetric top of tests/test_ode.py (T = 10 s, rtol 1e-10): Tsit5 336 steps, 8 rejected,
+# attitude error 3.4e-11 rad, against 292 steps, 21 rejected, 9.5e-11 with plain I
+# control (slightly less error per step: 292 steps at order 5 would give ~4.7e-11);
+# Dopri5 300 / 19 / 5.3e-10 against 292 / 24 / 6.7e-10; Dopri8 44 / 5 / 7.6e-11 either way.
+_PID_COEFFICIENTS: dict[type, dict[str, float]] = {
+    diffrax.Tsit5: {"pcoeff": 0.4, "icoeff": 0.3},
+    diffrax.Dopri5: {"pcoeff": 0.2, "icoeff": 0.65},
+    diffrax.Dopri8: {"pcoeff": 0.0, "icoeff": 1.0, "factormin": 1.0 / 3.0, "factormax": 6.0},
+}
+
+
+def default_controller(solver, rtol: float, atol: float) -> diffrax.PIDController:
+    """The step-size controller :func:`solve` uses when none is given (see ``_PID_COEFFICIENTS``).
+
+    ``rtol`` is relative and ``atol`` absolute, in each component's own unit (m, m/s,
+    kg m^2/s, and 1 for the quaternion), in diffrax's RMS norm over the whole state.
+    """
+    for solver_type, coefficients in _PID_COEFFICIENTS.items():
+        if isinstance(solver, solver_type):
+            return diffrax.PIDController(rtol=rtol, atol=atol, **coefficients)
+    return diffrax.PIDController(rtol=rtol, atol=atol)
+
+
+class Solution(eqx.Module):
+    """The result of :func:`solve`.
+
+    Attributes:
+        final: the :class:`jaxrb.State` at ``t1``, quaternion normalised.
+        trajectory: the states at ``ts`` stacked along a new leading axis
+            (``(len(ts), N, ...)`` per field, quaternions normalised), or ``None``.
+        ts: the save times (s), or ``None``.
+        stats: diffrax's statistics (``num_steps``, ``num_accepted_steps``,
+            ``num_rejected_steps``, ``max_steps``).
+        result: a ``diffrax.RESULTS`` value; ``diffrax.RESULTS.successful`` unless the
+            solve failed with ``throw=False``.
+        interpolation: diffrax's dense interpolation (``dense=True``), else ``None``.
+    """
+
+    final: State
+    trajectory: State | None
+    ts: Float[Array, " t"] | None
+    stats: dict
+    result: diffrax.RESULTS
+    interpolation: diffrax.DenseInterpolation | None
+
+    @property
+    def num_steps(self):
+        """Number of steps taken, accepted and rejected."""
+        return self.stats["num_steps"]
+
+    def evaluate(self, t) -> State:
+        """The state at time ``t`` (s; a scalar or a 1-D array of times) from dense output.
+
+        The same interpolant as saving at ``ts`` (see :func:`solve`); its quaternion is
+        normalised. Needs ``solve(..., dense=True)``.
+        """
+        if self.interpolation is None:
+            raise ValueError("This Solution has no dense output: call rb.ode.solve(..., dense=True).")
+        t = jnp.asarray(t, dtype=self.final.time.dtype)
+        if t.ndim > 1:
+            raise ValueError(f"evaluate takes a scalar time or a 1-D array of times, got shape {t.shape}.")
+
+        def at(time):
+            return self.interpolation.evaluate(time).to_state(time)
+
+        return jax.vmap(at)(t) if t.ndim == 1 else at(t)
+
+
+# -------------------------------------------------------------------------------- checks
+
+
+def _check_scene(scene, where: str) -> None:
+    if not isinstance(scene, Scene):
+        raise ValueError(f"{where} needs an rb.Scene, got {type(scene).__name__}.")
+
+
+def _concrete(x) -> np.ndarray | None:
+    """``x`` as a numpy array if its value is known now (not a tracer), else ``None``."""
+    try:
+        return np.asarray(x, dtype=float)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
+        return None
+
+
+def _check_positive(name: str, value) -> None:
+    v = _concrete(value)
+    if v is not None and not (np.all(np.isfinite(v)) and np.all(v > 0)):
+        raise ValueError(f"{name} must be a positive, finite tolerance, got {value!r}.")
+
+
+def _check_times(t0, t1, ts) -> None:
+    """Raise for ``t1 <= t0`` and for save times that are not increasing inside ``[t0, t1]``.
+
+    Done in Python when the values are concrete; traced times (a ``jit``/``vmap`` over the
+    state) are checked inside the computation by :func:`_runtime_checks` instead.
+    """
+    t0_value, t1_value = _concrete(t0), _concrete(t1)
+    if t1_value is not None:
+        if t1_value.shape != () or not np.isfinite(t1_value):
+            raise ValueError(f"t1 must be a finite scalar time (s), got {t1!r}.")
+        if t0_value is not None and t0_value.shape == () and not t1_value > t0_value:
+            raise ValueError(
+                f"t1 = {float(t1_value)} s must be later than the state's time {float(t0_value)} s: "
+                "rb.ode.solve integrates forward in time."
+            )
+    if ts is None:
+        return
+    if np.ndim(ts) != 1 or np.shape(ts)[0] == 0:
+        raise ValueError(f"ts must be a non-empty 1-D array of save times (s), got shape {np.shape(ts)}.")
+    ts_value = _concrete(ts)
+    if ts_value is None:
+        return
+    if not np.all(np.isfinite(ts_value)) or np.any(np.diff(ts_value) <= 0):
+        raise ValueError(f"ts must be finite and strictly increasing, got {ts_value}.")
+    if t0_value is not None and t0_value.shape == () and ts_value[0] < t0_value:
+        raise ValueError(f"ts starts at {ts_value[0]} s, before the state's time {float(t0_value)} s.")
+    if t1_value is not None and ts_value[-1] > t1_value:
+        raise ValueError(f"ts ends at {ts_value[-1]} s, after t1 = {float(t1_value)} s. Pass t1 >= max(ts).")
+
+
+def _runtime_checks(y0: OdeState, t0, t1, ts) -> OdeState:
+    # The same conditions as _check_times, for traced times: raised inside jit by equinox.
+    bad = ~(t1 > t0)
+    if ts is not None:
+        bad = bad | jnp.any(ts < t0) | jnp.any(ts > t1) | jnp.any(jnp.diff(ts) <= 0)
+    return eqx.error_if(
+        y0, bad,
+        "rb.ode.solve: need t1 > state.time and save times ts strictly increasing inside [state.time, t1].",
+    )
+
+
+# --------------------------------------------------------------------------------- solve
+
+
+def solve(
+    scene: Scene,
+    params: Params,
+    state: State,
+    t1,
+    *,
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    dt0=None,
+    ts=None,
+    step_to_ts: bool = False,
+    dense: bool = False,
+    max_steps: int = 16_384,
+    controller=None,
+    adjoint=None,
+    throw: bool = True,
+) -> Solution:
+    """Solve the scene's equations of motion from ``state`` (at ``state.time``) to ``t1`` adaptively.
+
+    Args:
+        scene: the static scene (its declared forces are the only ones evaluated).
+        params: :class:`jaxrb.Params` (traced: new values never recompile).
+        state: the initial :class:`jaxrb.State`; ``state.time`` (s) is the start time. A
+            state carrying a rotation matrix (from :class:`jaxrb.integrators.ExplicitEuler`)
+            is refused, because there the matrix, not the quaternion, is the attitude.
+        t1: end time (s), later than ``state.time``.
+        solver: a diffrax solver; ``diffrax.Tsit5()`` by default. Tested: ``Tsit5`` (order 5,
+            error estimate of order 4), ``Dopri5`` (5/4) and ``Dopri8`` (8/7).
+        rtol, atol: relative and absolute tolerance of the local error, per step, in each
+            component's unit (m, m/s, kg m^2/s; 1 for the quaternion). The global error is
+            typically ~``rtol`` times the horizon in natural time units; in float32 go no
+            tighter than ~1e-6.
+        dt0: initial step (s); ``None`` lets diffrax choose it.
+        ts: 1-D array of save times (s), strictly increasing, inside ``[state.time, t1]``.
+            The states there come from the solver's dense interpolant (diffrax documents
+            5th-order interpolation for Tsit5 and Dopri5, 8th for Dopri8). Its error
+            constant is larger than the step's, which shows between a high-order solver's
+            long steps: measured 1.2e-9 rad for Dopri8 at rtol 1e-10 on the tumbling top,
+            against 8e-11 at step endpoints.
+        step_to_ts: make a step end on every time in ``ts`` (diffrax's
+            ``ClipStepSizeController(..., step_ts=ts)``), so the saved states are step
+            endpoints with the solver's full accuracy. Costs at most ``len(ts)`` extra steps.
+        dense: keep the dense interpolant, for :meth:`Solution.evaluate`.
+        max_steps: the most steps the solve may take (static; an error if exceeded with
+            ``throw=True``). Also sizes the checkpointing of reverse-mode gradients.
+        controller: a diffrax step-size controller; default :func:`default_controller`
+            (a PID controller with coefficients tuned per solver).
+        adjoint: how reverse mode differentiates the solve; default
+            ``diffrax.RecursiveCheckpointAdjoint()`` (exact gradient of the computed
+            solution). ``diffrax.BacksolveAdjoint(...)`` solves the adjoint ODE backwards
+            instead (less memory, gradient accurate only to the tolerance). Forward mode
+            (``jax.jvp``, ``jax.jacfwd``) needs ``adjoint=diffrax.ForwardMode()``.
+        throw: raise if the solve fails (e.g. ``max_steps`` reached). With ``False`` the
+            failure is reported in ``Solution.result``.
+
+    Returns:
+        A :class:`Solution`. The returned quaternions are normalised: a projection onto
+        the unit sphere whose change is of the size of the solver's own error, so it does
+        not change the order of accuracy.
+    """
+    _check_scene(scene, "rb.ode.solve")
+    if not isinstance(params, Params):
+        raise ValueError(f"rb.ode.solve needs rb.Params (from scene.params()), got {type(params).__name__}.")
+    if not isinstance(state, State):
+        raise ValueError(f"rb.ode.solve needs an rb.State (from scene.state()), got {type(state).__name__}.")
+    if state.rotation is not None:
+        raise ValueError(
+            "This state carries a rotation matrix (State.rotation, used by rb.integrators.ExplicitEuler), "
+            "which is then the attitude. rb.ode.solve integrates the quaternion: pass "
+            "state.replace(orientation=rb.spatial.matrix_to_quat(state.rotation), rotation=None)."
+        )
+    _check_positive("rtol", rtol)
+    _check_positive("atol", atol)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    dtype = state.position.dtype
+    t0 = jnp.asarray(state.time, dtype=dtype)
+    _check_times(t0, t1, ts)
+    t1 = jnp.asarray(t1, dtype=dtype)
+    ts = None if ts is None else jnp.asarray(ts, dtype=dtype)
+
+    solver = diffrax.Tsit5() if solver is None else solver
+    if controller is None:
+        # Arrays, not Python floats: a float would be a static argument of diffrax's jit,
+        # and every new tolerance would recompile.
+        controller = default_controller(solver, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype))
+    if step_to_ts:
+        if ts is None:
+            raise ValueError("step_to_ts=True needs save times ts.")
+        controller = diffrax.ClipStepSizeController(controller, step_ts=ts)
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+
+    y0 = OdeState.from_state(state)
+    if _concrete(t0) is None or _concrete(t1) is None or (ts is not None and _concrete(ts) is None):
+        y0 = _runtime_checks(y0, t0, t1, ts)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(VectorField(scene)),
+        solver,
+        t0=t0,
+        t1=t1,
+        dt0=dt0,
+        y0=y0,
+        args=params,
+        # Not SaveAt(subs=...): BacksolveAdjoint refuses it. With ts, ys holds the states at
+        # ts followed by the state at t1.
+        saveat=diffrax.SaveAt(t1=True, ts=ts, dense=dense),
+        stepsize_controller=controller,
+        adjoint=adjoint,
+        max_steps=max_steps,
+        throw=throw,
+    )
+    final = jax.tree.map(lambda x: x[-1], sol.ys).to_state(t1)
+    trajectory = None
+    if ts is not None:
+        trajectory = jax.vmap(lambda y, t: y.to_state(t))(jax.tree.map(lambda x: x[:-1], sol.ys), ts)
+    interpolation = sol.interpolation if dense else None
+    return Solution(final=final, trajectory=trajectory, ts=ts, stats=sol.stats, result=sol.result,
+                    interpolation=interpolation)
