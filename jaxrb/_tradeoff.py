@@ -272,18 +272,7 @@ class TradeoffResult:
 
 
 def _check_common(scene, params, state, t_final, num_compare) -> None:
-    if not isinstance(scene, Scene):
-        raise ValueError(f"tradeoff needs an rb.Scene, got {type(scene).__name__}.")
-    if not isinstance(params, Params):
-        raise ValueError(f"tradeoff needs rb.Params (from scene.params()), got {type(params).__name__}.")
-    if not isinstance(state, State):
-        raise ValueError(f"tradeoff needs an rb.State (from scene.state()), got {type(state).__name__}.")
-    if state.rotation is not None:
-        raise ValueError(
-            "This state carries a rotation matrix (prepared for rb.integrators.ExplicitEuler). Pass the "
-            "state from scene.state(...), or state.replace(orientation=rb.spatial.matrix_to_quat("
-            "state.rotation), rotation=None)."
-        )
+    ode.check_inputs(scene, params, state, "rb.tradeoff")
     if isinstance(num_compare, bool) or not isinstance(num_compare, int) or num_compare < 1:
         raise ValueError(f"num_compare must be a positive integer, got {num_compare!r}.")
     try:

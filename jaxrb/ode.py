@@ -36,7 +36,7 @@ from .dynamics import stage_derivative
 from .scene import Scene
 from .state import Params, State
 
-__all__ = ["OdeState", "VectorField", "vector_field", "default_controller", "Solution", "solve"]
+__all__ = ["OdeState", "VectorField", "vector_field", "default_controller", "Solution", "solve", "check_inputs"]
 
 
 class OdeState(eqx.Module):
@@ -200,6 +200,21 @@ def _concrete(x) -> np.ndarray | None:
         return None
 
 
+def check_inputs(scene, params, state, where: str) -> None:
+    """Raise ``ValueError`` unless ``(scene, params, state)`` can be integrated as a quaternion ODE."""
+    _check_scene(scene, where)
+    if not isinstance(params, Params):
+        raise ValueError(f"{where} needs rb.Params (from scene.params()), got {type(params).__name__}.")
+    if not isinstance(state, State):
+        raise ValueError(f"{where} needs an rb.State (from scene.state()), got {type(state).__name__}.")
+    if state.rotation is not None:
+        raise ValueError(
+            "This state carries a rotation matrix (State.rotation, used by rb.integrators.ExplicitEuler), "
+            f"which is then the attitude. {where} integrates the quaternion: pass "
+            "state.replace(orientation=rb.spatial.matrix_to_quat(state.rotation), rotation=None)."
+        )
+
+
 def _check_positive(name: str, value) -> None:
     v = _concrete(value)
     if v is not None and not (np.all(np.isfinite(v)) and np.all(v > 0)):
@@ -311,17 +326,7 @@ def solve(
         the unit sphere whose change is of the size of the solver's own error, so it does
         not change the order of accuracy.
     """
-    _check_scene(scene, "rb.ode.solve")
-    if not isinstance(params, Params):
-        raise ValueError(f"rb.ode.solve needs rb.Params (from scene.params()), got {type(params).__name__}.")
-    if not isinstance(state, State):
-        raise ValueError(f"rb.ode.solve needs an rb.State (from scene.state()), got {type(state).__name__}.")
-    if state.rotation is not None:
-        raise ValueError(
-            "This state carries a rotation matrix (State.rotation, used by rb.integrators.ExplicitEuler), "
-            "which is then the attitude. rb.ode.solve integrates the quaternion: pass "
-            "state.replace(orientation=rb.spatial.matrix_to_quat(state.rotation), rotation=None)."
-        )
+    check_inputs(scene, params, state, "rb.ode.solve")
     _check_positive("rtol", rtol)
     _check_positive("atol", atol)
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
