@@ -2,7 +2,8 @@
 
 What it measures
     One box (half extents 0.1, 0.2, 0.3 m, 1 kg) under gravity, spinning about all three
-    axes, advanced by each integrator of ``rb.integrators`` with dt = 1 ms. For each ensemble size E (``--envs``) the timed function is
+    axes, advanced by each integrator of ``rb.integrators`` with dt = 1 ms. For each
+    ensemble size E (``--envs``) the timed function is
     ``jax.jit(jax.vmap(rollout))`` over E copies of params and state (E = 1: the plain,
     un-vmapped rollout), running ``--steps`` steps as one ``lax.scan`` with
     ``save_every=steps`` so no trajectory is stored. The score is

@@ -499,8 +499,58 @@ def _compose(masses, coms, inertias):
 # ------------------------------------------------------------------------ principal axes
 
 
+# Cyclic Jacobi sweeps for a 3x3 symmetric matrix. Jacobi converges quadratically once
+# the off-diagonal entries are small; 6 sweeps (18 rotations) leave them at round-off for
+# any symmetric 3x3 (checked in tests/test_inertia.py against numpy's eigh).
+_JACOBI_SWEEPS = 6
+
+
+def _jacobi_rotation(matrix, axes, p: int, q: int):
+    """One Jacobi rotation zeroing ``matrix[p, q]``; returns ``(J^T M J, V J)``."""
+    a_pp, a_qq, a_pq = matrix[..., p, p], matrix[..., q, q], matrix[..., p, q]
+    # tan of the rotation angle, the smaller root of t^2 + 2 tau t - 1 = 0 with
+    # tau = d / (2 a_pq) (Golub & Van Loan, Algorithm 8.4.1), multiplied through by
+    # 2 |a_pq|: |t| <= 1, no cancellation, and no overflow once a_pq is tiny (tau^2
+    # overflowed in float32 near convergence and corrupted the result under jit).
+    d = a_qq - a_pp
+    denominator = jnp.abs(d) + jnp.sqrt(d * d + 4.0 * a_pq * a_pq)
+    empty = denominator == 0  # a_pq = 0 and d = 0: nothing to rotate
+    t = jnp.where(empty, 0.0, jnp.where(d >= 0, 2.0, -2.0) * a_pq / jnp.where(empty, 1.0, denominator))
+    c = 1.0 / jnp.sqrt(1.0 + t * t)
+    s = t * c
+    one = jnp.ones_like(c)
+    nil = jnp.zeros_like(c)
+    rows = [[one, nil, nil], [nil, one, nil], [nil, nil, one]]
+    rows[p][p], rows[q][q], rows[p][q], rows[q][p] = c, c, s, -s
+    rotation = jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    return matmul(matmul(transpose(rotation), matrix), rotation), matmul(axes, rotation)
+
+
+def _jacobi_eigh(matrix):
+    """Eigenvalues (ascending) and eigenvectors (columns) of symmetric 3x3 matrices.
+
+    Element-wise arithmetic only, so a batch of matrices vectorises; LAPACK's ``eigh``
+    runs one small matrix at a time on CPU, which made a vmapped splitting step 20x
+    slower than RK4 (benchmarks/free_body.py). Not differentiated itself: the custom
+    JVP of ``_principal_axes`` gives the derivatives.
+    """
+    axes = jnp.broadcast_to(jnp.eye(3, dtype=matrix.dtype), matrix.shape)
+    for _ in range(_JACOBI_SWEEPS):
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            matrix, axes = _jacobi_rotation(matrix, axes, p, q)
+    moments = jnp.diagonal(matrix, axis1=-2, axis2=-1)
+    # Sort ascending with a three-comparator network, swapping eigenvector columns along.
+    for i, j in ((0, 1), (1, 2), (0, 1)):
+        swap = moments[..., i] > moments[..., j]
+        order = [0, 1, 2]
+        order[i], order[j] = j, i
+        moments = jnp.where(swap[..., None], moments[..., order], moments)
+        axes = jnp.where(swap[..., None, None], axes[..., :, order], axes)
+    return moments, axes
+
+
 def _eigh_right_handed(matrix):
-    moments, axes = jnp.linalg.eigh(matrix)
+    moments, axes = _jacobi_eigh(matrix)
     # eigh's eigenvectors have arbitrary signs; flipping the last one makes R a rotation.
     det = dot(axes[..., :, 0], cross(axes[..., :, 1], axes[..., :, 2]))
     sign = jnp.where(det < 0, -1.0, 1.0).astype(axes.dtype)
@@ -550,7 +600,8 @@ def principal_axes(
         whose columns are the principal axes in the inertia's frame, i.e. it maps the
         principal frame to that frame.
 
-    Differentiable: a custom JVP around ``jnp.linalg.eigh`` keeps gradients finite when
+    Computed by cyclic Jacobi rotations (element-wise, so it vectorises under ``vmap``).
+    Differentiable: a custom JVP around the eigen-decomposition keeps gradients finite when
     moments repeat (cube, cylinder). There the axes within the repeated eigenspace are not
     unique and their derivative is taken as 0; the moments' derivatives stay exact.
     """
