@@ -73,16 +73,21 @@ def _backward_euler_rates(inertia, momentum_body, torque_body, dt, stages: int, 
     returned. For ordinary steps the last stage converges and the result is the root for
     ``dt`` itself. Without ``safeguard`` the last Newton iterate is returned as it is.
     """
-    momentum_scale = spatial.safe_norm(momentum_body) + dt * spatial.safe_norm(torque_body)
-    # Newton converges quadratically: a converged residual sits at round-off (~1e-16
-    # relative in float64, ~1e-7 in float32); an unconverged one is orders larger.
-    tolerance = 64.0 * jnp.finfo(momentum_body.dtype).eps * momentum_scale
+    eps = jnp.finfo(momentum_body.dtype).eps
+    inertia_scale = spatial.safe_norm(inertia.reshape(9))
 
     def stage(carry, k):
         w, accepted = carry
         h = dt * k / stages
         w = _fixed_iterations(lambda _, w: _gyroscopic_newton(inertia, momentum_body, torque_body, h, w), w, iterations)
-        converged = spatial.safe_norm(_gyroscopic_residual(inertia, momentum_body, torque_body, h, w)[0]) <= tolerance
+        residual, iw = _gyroscopic_residual(inertia, momentum_body, torque_body, h, w)
+        # Newton converges quadratically: a converged residual sits at the round-off of
+        # the terms it sums (I w, h w x I w, P_n, h tau_b), an unconverged one is orders
+        # larger. Scaling by |I| |w| (not |I w|) covers thin bodies, where I w rounds at
+        # the size of the largest moment times |w|.
+        size = inertia_scale * spatial.safe_norm(w) * (1.0 + h * spatial.safe_norm(w))
+        size = size + spatial.safe_norm(momentum_body) + h * spatial.safe_norm(torque_body)
+        converged = spatial.safe_norm(residual) <= 64.0 * eps * size
         return (w, jnp.where(converged, w, accepted)), None
 
     w0 = spatial.matvec(spatial.inverse3(inertia), momentum_body)
