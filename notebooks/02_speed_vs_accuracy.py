@@ -388,7 +388,7 @@ print(f"CONVERGED_ENERGY_RATIO {one_step_energy_ratio(DEFAULT_SOLVE):.4g}")
 
 # %% [markdown]
 # One linearised step multiplies this body's kinetic energy by several hundred; the
-# default solve removes a third of it instead.
+# default solve removes 38 % of it instead.
 #
 # Plain Newton from $\boldsymbol{\omega}_n$ does not always find a root of the implicit
 # equation when $|\boldsymbol{\omega}| h \gtrsim 1.5$ (about 1 % of random bodies and
