@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import abc
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
 
@@ -25,6 +25,12 @@ class Integrator(eqx.Module):
     ``state``; ``scene`` and ``dt`` are static. ``prepare(state)`` brings a state built
     by :meth:`jaxrb.Scene.state` into the form the integrator carries (the identity for
     all but the rotation-matrix method); it must be idempotent.
+
+    An integrator whose step needs quantities derived from ``params`` alone (such as
+    principal axes) returns them from ``precompute(params)`` and accepts them as
+    ``step(scene, params, state, dt, derived)``. :func:`jaxrb.rollout` then evaluates
+    them once, outside its loop: XLA does not always hoist such loop-invariant work out
+    of a vmapped ``lax.scan`` by itself.
     """
 
     #: Order of global accuracy in ``dt`` for smooth problems.
@@ -36,3 +42,7 @@ class Integrator(eqx.Module):
 
     def prepare(self, state: State) -> State:
         return state
+
+    def precompute(self, params: Params) -> Any:
+        """Quantities derived from ``params`` alone for :meth:`step`; ``None`` if none."""
+        return None
