@@ -3,6 +3,7 @@
 The public API is re-exported here; modules are named after the physics they hold.
 """
 
+from . import collision as collision
 from . import dynamics as dynamics
 from . import ensemble as ensemble
 from . import exact as exact
@@ -16,6 +17,8 @@ from . import spatial as spatial
 from ._tradeoff import TradeoffResult as TradeoffResult
 from ._tradeoff import plot_tradeoff as plot_tradeoff
 from ._tradeoff import tradeoff as tradeoff
+from .collision import Contact as Contact
+from .collision import collide as collide
 from .ensemble import shard_ensemble as shard_ensemble
 from .forces import AngularDamping as AngularDamping
 from .forces import ExternalWrench as ExternalWrench

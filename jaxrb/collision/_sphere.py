@@ -1,0 +1,146 @@
+"""Sphere (A) against sphere, box and capsule (B): one contact each (``K = 1``).
+
+Sphere-sphere and sphere-capsule both reduce to two "core" points, each carrying a radius:
+the contact is along the line between the cores (Ericson, *Real-Time Collision Detection*,
+sec. 4.3 and 5.1.2). Sphere-box uses the closest point of the box to the sphere centre
+(sec. 5.1.4), or the nearest face when the centre is inside the box.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .. import spatial
+from ..shapes import Box, Capsule, Sphere
+from . import _geometry as geo
+from ._contact import Contact, contact_from_surface_point
+
+__all__ = ["sphere_sphere", "sphere_box", "sphere_capsule", "rounded_points_contact"]
+
+
+def rounded_points_contact(
+    core_a: Float[Array, "*k 3"],
+    radius_a: float,
+    core_b: Float[Array, "*k 3"],
+    radius_b: float,
+    fallback_normal: Float[Array, "*k 3"],
+) -> tuple[Array, Array, Array]:
+    """Contact of two balls ``(core_a, radius_a)``, ``(core_b, radius_b)``: A's surface point, normal, gap.
+
+    ``normal = (core_a - core_b) / |core_a - core_b|`` and ``gap = |core_a - core_b| - r_a - r_b``.
+    When the cores coincide every direction is a valid normal; ``fallback_normal`` (unit)
+    is used. ``safe_norm`` keeps the gradient finite there (0 for the distance, whose
+    derivative ``d/|d|`` is 0/0), and ``safe_normalize`` keeps the unused branch finite.
+    Broadcasts over leading slot axes.
+    """
+    d = core_a - core_b
+    distance = spatial.safe_norm(d)
+    normal = jnp.where((distance == 0)[..., None], fallback_normal, spatial.safe_normalize(d))
+    gap = distance - radius_a - radius_b
+    return core_a - radius_a * normal, normal, gap
+
+
+def sphere_sphere(
+    sphere_a: Sphere,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    sphere_b: Sphere,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Two spheres: ``K = 1``. Orientations are ignored.
+
+    Coincident centres: the normal falls back to the world ``+z`` axis (A is pushed up),
+    with ``gap = -(r_a + r_b)``; value and gradient stay finite.
+    """
+    position_a, orientation_a = geo.pose("sphere_sphere (A)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("sphere_sphere (B)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, position_b = geo.as_float(dtype, position_a, position_b)
+    up = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    surface_a, normal, gap = rounded_points_contact(position_a, sphere_a.radius, position_b, sphere_b.radius, up)
+    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+
+
+def sphere_box(
+    sphere: Sphere,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    box: Box,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Sphere (A) against box (B): ``K = 1``, also with the sphere centre inside the box.
+
+    In the box frame, with the centre at ``c`` and half extents ``e``:
+
+    * centre outside: the closest box point is ``clip(c, -e, e)`` (Ericson sec. 5.1.4);
+      the normal points from it to ``c`` and ``gap = |c - clip(c)| - r``.
+    * centre inside (or on the surface): the nearest face ``k = argmin_i (e_i - |c_i|)``
+      gives the shortest way out, normal ``sign(c_k) a_k`` and
+      ``gap = -(e_k - |c_k|) - r`` -- the exact signed distance, so the two branches
+      agree on the surface and the gap is continuous.
+
+    Degenerate cases, all finite in value and gradient: a centre exactly on a face takes
+    the inside branch (normal = that face's); on an edge or corner, the first of the tied
+    faces (x before y before z); with ``c_k = 0`` (centre of a cube) the ``+`` face.
+    ``orientation_a`` is ignored.
+    """
+    position_a, orientation_a = geo.pose("sphere_box (sphere)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("sphere_box (box)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
+    half = jnp.asarray(box.half_extents, dtype)
+    axes = geo.body_axes(orientation_b)  # rows: box axes, world frame
+    centre = spatial.dot(axes, (position_a - position_b)[None, :])  # box frame
+    # Outside: the clamped point.
+    closest = jnp.clip(centre, -half, half)
+    offset = centre - closest
+    outside_distance = spatial.safe_norm(offset)
+    outside = outside_distance > 0
+    # Inside: the nearest face. Its sign never returns 0, so a centred sphere still gets a face.
+    depth = half - jnp.abs(centre)  # distance to each pair of faces, >= 0 inside
+    k = jnp.argmin(depth)
+    face_sign = geo.sign_nonzero(centre[k])
+    face_normal = face_sign * jnp.eye(3, dtype=dtype)[k]
+    inside_closest = centre.at[k].set(face_sign * half[k])
+    normal_box = jnp.where(outside, spatial.safe_normalize(offset), face_normal)
+    box_point = jnp.where(outside, closest, inside_closest)
+    gap = jnp.where(outside, outside_distance, -depth[k]) - sphere.radius
+    normal = spatial.dot(spatial.transpose(axes), normal_box[None, :])  # back to world
+    surface_b = position_b + spatial.dot(spatial.transpose(axes), box_point[None, :])
+    surface_a = surface_b + gap * normal
+    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+
+
+def sphere_capsule(
+    sphere: Sphere,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    capsule: Capsule,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Sphere (A) against capsule (B): ``K = 1``.
+
+    The capsule is the segment ``c_b + t a``, ``|t| <= half_length`` (``a`` = its body z
+    axis), rounded by its radius; the contact is sphere-sphere with the segment point
+    closest to the sphere centre. Centre exactly on the segment: the normal falls back to
+    the capsule's body x axis, perpendicular to the segment, which is the shortest way out
+    (``gap = -(r_sphere + r_capsule)``). ``orientation_a`` is ignored.
+    """
+    position_a, orientation_a = geo.pose("sphere_capsule (sphere)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("sphere_capsule (capsule)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
+    axes = geo.body_axes(orientation_b)
+    _, core_b = geo.closest_on_segment(position_b, axes[2], capsule.half_length, position_a)
+    surface_a, normal, gap = rounded_points_contact(position_a, sphere.radius, core_b, capsule.radius, axes[0])
+    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
