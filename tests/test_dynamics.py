@@ -11,6 +11,7 @@ import pytest
 import jaxrb as rb
 from jaxrb import spatial
 from tests import reference
+from tests.problems import forced_setup
 
 INTEGRATORS = {
     "ExplicitEuler": rb.integrators.ExplicitEuler(),
@@ -376,29 +377,9 @@ def test_undeclared_forces_are_not_compiled():
 @pytest.mark.slow
 def test_rk4_is_fourth_order_in_position_velocity_attitude_and_momentum():
     """Time-dependent force and torque, so x, v and L all change: every field converges at 4."""
-    mass = 1.5
-    inertia = np.array([[2.0, 0.3, 0.0], [0.3, 1.5, 0.1], [0.0, 0.1, 3.0]])
-
-    def force_np(t):
-        return np.array([np.sin(3 * t), np.cos(2 * t), 0.5 * t])
-
-    def torque_np(t):
-        return np.array([0.5 * np.cos(t), -0.3 * np.sin(2 * t), 0.2])
-
-    def wrench(t, params, state):
-        force = jnp.stack([jnp.sin(3 * t), jnp.cos(2 * t), 0.5 * t])[None]
-        torque = jnp.stack([0.5 * jnp.cos(t), -0.3 * jnp.sin(2 * t), 0.2 + 0.0 * t])[None]
-        return force, torque
-
-    scene = free_body(inertia, forces=[rb.ExternalWrench(wrench)], mass=mass)
-    params = scene.params()
-    q0 = np.asarray(spatial.quat_from_axis_angle(jnp.array([1.0, -1.0, 0.5]), 0.8))
-    state = scene.state(params, position=(0.1, 0.2, 0.3), velocity=(1.0, 0.0, -0.5), orientation=q0,
-                        angular_momentum=(0.5, 2.0, -1.0))
+    scene, params, state, args = forced_setup()
     t_final = 2.0
-    x_ref, v_ref, q_ref, l_ref = reference.forced_body_world_frame(
-        mass, inertia, force_np, torque_np, np.array([0.1, 0.2, 0.3]), np.array([1.0, 0.0, -0.5]), q0,
-        np.array([0.5, 2.0, -1.0]), [0.0, t_final])
+    x_ref, v_ref, q_ref, l_ref = reference.forced_body_world_frame(*args, [0.0, t_final])
     hs, errors = [], {"x": [], "v": [], "q": [], "L": []}
     for k in range(5):
         h = 0.1 * 2.0**-k

@@ -16,6 +16,7 @@ import pytest
 import jaxrb as rb
 from jaxrb import ode, spatial
 from tests import reference
+from tests.problems import forced_setup
 
 ASYM_INERTIA = (1.0, 2.0, 3.0)
 ASYM_OMEGA0 = np.array([-0.3, 0.9, -0.5])
@@ -101,29 +102,6 @@ def test_step_to_ts_saves_step_endpoints():
     assert clipped.num_steps <= top_solution("Dopri8").num_steps + len(TOP_TIMES)
     with pytest.raises(ValueError, match="needs save times"):
         ode.solve(scene, params, state, 1.0, step_to_ts=True)
-
-
-def forced_setup():
-    mass = 1.5
-    inertia = np.array([[2.0, 0.3, 0.0], [0.3, 1.5, 0.1], [0.0, 0.1, 3.0]])
-
-    def force_np(t):
-        return np.array([np.sin(3 * t), np.cos(2 * t), 0.5 * t])
-
-    def torque_np(t):
-        return np.array([0.5 * np.cos(t), -0.3 * np.sin(2 * t), 0.2])
-
-    def wrench(t, params, state):
-        force = jnp.stack([jnp.sin(3 * t), jnp.cos(2 * t), 0.5 * t])[None]
-        torque = jnp.stack([0.5 * jnp.cos(t), -0.3 * jnp.sin(2 * t), 0.2 + 0.0 * t])[None]
-        return force, torque
-
-    scene = rb.Scene([rb.Body("body", mass=mass, inertia=inertia)], gravity=None, forces=[rb.ExternalWrench(wrench)])
-    params = scene.params()
-    x0, v0, l0 = np.array([0.1, 0.2, 0.3]), np.array([1.0, 0.0, -0.5]), np.array([0.5, 2.0, -1.0])
-    q0 = np.asarray(spatial.quat_from_axis_angle(jnp.array([1.0, -1.0, 0.5]), 0.8))
-    state = scene.state(params, position=x0, velocity=v0, orientation=q0, angular_momentum=l0, time=0.0)
-    return scene, params, state, (mass, inertia, force_np, torque_np, x0, v0, q0, l0)
 
 
 @pytest.mark.parametrize("name", ["Tsit5", "Dopri8"])
