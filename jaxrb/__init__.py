@@ -4,6 +4,7 @@ The public API is re-exported here; modules are named after the physics they hol
 """
 
 from . import collision as collision
+from . import contact as contact
 from . import dynamics as dynamics
 from . import ensemble as ensemble
 from . import exact as exact
@@ -19,6 +20,7 @@ from ._tradeoff import plot_tradeoff as plot_tradeoff
 from ._tradeoff import tradeoff as tradeoff
 from .collision import Contact as Contact
 from .collision import collide as collide
+from .contact import ContactSettings as ContactSettings
 from .ensemble import shard_ensemble as shard_ensemble
 from .forces import AngularDamping as AngularDamping
 from .forces import ExternalWrench as ExternalWrench

@@ -19,10 +19,13 @@ import numpy as np
 from . import inertia as _inertia
 from . import spatial
 from .forces import AngularDamping, ForceModel, Gravity, LinearDamping
-from .shapes import Shape
+from .shapes import Plane, Shape
 from .state import Params, State
 
-__all__ = ["Body", "Scene"]
+__all__ = ["Body", "Scene", "GROUND"]
+
+#: The name of the scene's ground plane in contact pairs.
+GROUND = "ground"
 
 
 def _is_traced(x: Any) -> bool:
@@ -123,11 +126,21 @@ class Scene:
         forces: extra force models (:class:`jaxrb.LinearDamping`,
             :class:`jaxrb.AngularDamping`, :class:`jaxrb.PointForces`,
             :class:`jaxrb.ExternalWrench`, ...). Only these are compiled into a step.
+        ground: an optional static :class:`jaxrb.Plane` (the half-space below it is
+            solid), named ``"ground"`` in contact pairs. A tilted normal makes an incline.
+        contacts: the pairs of bodies that may touch, as ``(name_a, name_b)`` tuples
+            (``name_b`` may be ``"ground"``), or ``"all"``: every pair of bodies that have
+            shapes, plus every such body against the ground. Pairs whose shapes have no
+            narrow-phase function are refused when listed and skipped by ``"all"``.
+            Resolved once, here; :attr:`contact_pairs` holds the result. Default: none,
+            and then no collision or contact code is compiled.
     """
 
     bodies: Sequence[Body]
     gravity: Sequence[float] | None = (0.0, 0.0, -9.81)
     forces: Sequence[ForceModel] = ()
+    ground: Plane | None = None
+    contacts: Sequence[tuple[str, str]] | str = ()
 
     def __post_init__(self):
         bodies = tuple(self.bodies)
@@ -156,8 +169,80 @@ class Scene:
                     f"...), got {f!r}."
                 )
         object.__setattr__(self, "forces", forces)
+        if self.ground is not None and not isinstance(self.ground, Plane):
+            raise ValueError(
+                f"Scene.ground must be an rb.Plane (e.g. rb.Plane(normal=(0, 0, 1), offset=0.0)) "
+                f"or None, got {self.ground!r}."
+            )
+        object.__setattr__(self, "contacts", self._resolve_contacts(self.contacts))
+
+    def _resolve_contacts(self, contacts) -> tuple[tuple[str, str], ...]:
+        from .collision import max_contacts  # the collision package imports shapes only
+
+        by_name = {b.name: b for b in self.bodies}
+        if GROUND in by_name:
+            raise ValueError(f"{GROUND!r} is the name of the ground plane; rename that body.")
+        if isinstance(contacts, str):
+            if contacts != "all":
+                raise ValueError(
+                    f"Scene.contacts must be 'all' or a list of (name_a, name_b) pairs, got {contacts!r}."
+                )
+            shaped = [b for b in self.bodies if b.shape is not None]
+            candidates = [(a.name, b.name) for i, a in enumerate(shaped) for b in shaped[i + 1:]]
+            if self.ground is not None:
+                candidates += [(b.name, GROUND) for b in shaped]
+            pairs = []
+            for a, b in candidates:
+                try:
+                    max_contacts(self._shape_of(a), self._shape_of(b))
+                except ValueError:
+                    continue  # "all" means every pair the narrow phase supports
+                pairs.append((a, b))
+            return tuple(pairs)
+        pairs = []
+        for pair in contacts:
+            if (not isinstance(pair, (tuple, list)) or len(pair) != 2
+                    or not all(isinstance(x, str) for x in pair)):
+                raise ValueError(
+                    f"Each contact pair must be a (name_a, name_b) tuple of body names (or 'ground'), got {pair!r}."
+                )
+            a, b = pair
+            if a == GROUND:
+                a, b = b, a  # the ground is always B
+            for name in (a, b):
+                if name == GROUND and self.ground is None:
+                    raise ValueError(
+                        f"Contact pair {pair!r} names 'ground' but the scene has no ground: "
+                        "pass ground=rb.Plane()."
+                    )
+                if name != GROUND and name not in by_name:
+                    raise ValueError(f"Contact pair {pair!r}: unknown body {name!r}; bodies are {list(by_name)}.")
+                if name != GROUND and by_name[name].shape is None:
+                    raise ValueError(
+                        f"Contact pair {pair!r}: body {name!r} has no shape to collide with; give it shape=."
+                    )
+            if a == b:
+                raise ValueError(f"Contact pair {pair!r} pairs a body with itself.")
+            if (a, b) in pairs or (b, a) in pairs:
+                raise ValueError(f"Contact pair {pair!r} is listed twice.")
+            max_contacts(self._shape_of(a), self._shape_of(b))  # raises, naming the supported pairs
+            pairs.append((a, b))
+        return tuple(pairs)
+
+    def _shape_of(self, name: str) -> Shape:
+        return self.ground if name == GROUND else self.bodies[self.index(name)].shape
 
     # ------------------------------------------------------------------ structure
+
+    @property
+    def contact_pairs(self) -> tuple[tuple[str, str], ...]:
+        """The resolved contact pairs ``(name_a, name_b)`` (static); ``Params.restitution``
+        and ``Params.friction`` follow this order."""
+        return self.contacts
+
+    @property
+    def num_contact_pairs(self) -> int:
+        return len(self.contacts)
 
     @property
     def num_bodies(self) -> int:
@@ -225,6 +310,8 @@ class Scene:
         gravity=None,
         linear_damping=0.0,
         angular_damping=0.0,
+        restitution=0.0,
+        friction=0.5,
         extra=None,
         dtype=None,
     ) -> Params:
@@ -235,6 +322,15 @@ class Scene:
         entries may be ``(3,)`` principal moments or ``(3, 3)`` tensors (kg m^2, body
         frame). Values are validated (positive mass, symmetric positive definite inertia
         obeying the triangle inequality, finite numbers) unless they are traced.
+
+        ``restitution`` (in ``[0, 1]``, default 0) and ``friction`` (``>= 0``, default 0.5)
+        are stored per contact pair (``Params.restitution``, shape ``(P,)`` in
+        :attr:`contact_pairs` order). Give one value for every pair, a ``(P,)`` array, or a
+        dict whose keys are pairs ``("ball", "ground")`` (that pair's value) or body names
+        and ``"ground"`` (a per-body value). Per-body values are combined per pair by the
+        rule of Box2D: **restitution is the larger of the two, friction their geometric
+        mean** ``sqrt(mu_a mu_b)``; bodies not named take the default. Pair keys win over
+        body keys. Traced values pass through, so these are differentiable.
         """
         dtype = _canonical_dtype(dtype)
         declared = {type(m) for m in self.force_models}
@@ -291,16 +387,51 @@ class Scene:
             linear_damping=self._per_body("linear_damping", linear_damping, (), np.zeros(()), dtype),
             angular_damping=self._per_body("angular_damping", angular_damping, (), np.zeros(()), dtype),
             extra=extra,
+            restitution=self._per_pair("restitution", restitution, 0.0, dtype),
+            friction=self._per_pair("friction", friction, 0.5, dtype),
         )
-        if not _is_traced((params.mass, params.inertia, params.linear_damping, params.angular_damping)):
+        if not _is_traced((params.mass, params.inertia, params.linear_damping, params.angular_damping,
+                           params.restitution, params.friction)):
             self.check_params(params)
         return params
+
+    def _per_pair(self, what: str, value, default: float, dtype):
+        """One coefficient per contact pair from a scalar, a ``(P,)`` array or a dict (see params)."""
+        pairs = self.contact_pairs
+        p = len(pairs)
+        if not isinstance(value, Mapping):
+            arr = jnp.asarray(value, dtype=dtype)
+            if arr.shape not in ((), (p,)):
+                raise ValueError(
+                    f"{what} must be one value, a ({p},) array (one per contact pair, in the order "
+                    f"{list(pairs)}), or a dict; got shape {arr.shape}."
+                )
+            return jnp.broadcast_to(arr, (p,))
+        per_body = {k: v for k, v in value.items() if isinstance(k, str)}
+        per_pair = {tuple(k): v for k, v in value.items() if not isinstance(k, str)}
+        for name in per_body:
+            if name != GROUND:
+                self.index(name)  # raises on unknown names
+        for key in per_pair:
+            if key not in pairs and key[::-1] not in pairs:
+                raise ValueError(f"{what}: {key!r} is not a contact pair of this scene; pairs are {list(pairs)}.")
+        out = []
+        for a, b in pairs:
+            if (a, b) in per_pair or (b, a) in per_pair:
+                out.append(jnp.asarray(per_pair.get((a, b), per_pair.get((b, a))), dtype=dtype))
+                continue
+            va = jnp.asarray(per_body.get(a, default), dtype=dtype)
+            vb = jnp.asarray(per_body.get(b, default), dtype=dtype)
+            out.append(jnp.maximum(va, vb) if what == "restitution" else jnp.sqrt(va * vb))
+        return jnp.stack(out) if out else jnp.zeros((0,), dtype)
 
     def check_params(self, params: Params) -> None:
         """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
         n = self.num_bodies
+        p = self.num_contact_pairs
         expected = {"mass": (n,), "inertia": (n, 3, 3), "gravity": (3,),
-                    "linear_damping": (n,), "angular_damping": (n,)}
+                    "linear_damping": (n,), "angular_damping": (n,),
+                    "restitution": (p,), "friction": (p,)}
         for field, shape in expected.items():
             value = getattr(params, field)
             if value.shape != shape:
@@ -318,6 +449,18 @@ class Scene:
                 )
         if not np.all(np.isfinite(np.asarray(params.gravity))):
             raise ValueError(f"Params.gravity must be finite, got {params.gravity}.")
+        e = np.asarray(params.restitution)
+        if not np.all(np.isfinite(e)) or np.any(e < 0) or np.any(e > 1):
+            raise ValueError(
+                f"Params.restitution must lie in [0, 1] (0: plastic, 1: elastic; above 1 an impact "
+                f"would create energy), got {e} for pairs {list(self.contact_pairs)}."
+            )
+        mu = np.asarray(params.friction)
+        if not np.all(np.isfinite(mu)) or np.any(mu < 0):
+            raise ValueError(
+                f"Params.friction must be finite and >= 0 (Coulomb's coefficient), got {mu} for "
+                f"pairs {list(self.contact_pairs)}."
+            )
 
     def state(
         self,

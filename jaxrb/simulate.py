@@ -17,6 +17,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .contact import ContactSettings
+from .contact._step import contact_step, initial_impulses
 from .integrators import Integrator
 from .scene import Scene
 from .state import Params, State
@@ -35,10 +37,16 @@ class Step(eqx.Module):
     integrator: Integrator
     dt: float = eqx.field(static=True)
     debug: bool = eqx.field(static=True, default=False)
+    contact: ContactSettings = eqx.field(static=True, default=ContactSettings())
 
     def prepare(self, state: State) -> State:
-        """Put a state in the form this integrator carries (idempotent; see Integrator)."""
-        return self.integrator.prepare(state)
+        """Put a state in the form this step carries (idempotent): the integrator's form
+        (see Integrator) and, with contacts, the warm-start impulses."""
+        state = self.integrator.prepare(state)
+        if self.scene.contact_pairs and state.contact_impulse is None:
+            state = dataclasses.replace(
+                state, contact_impulse=initial_impulses(self.scene, state.position.dtype))
+        return state
 
     @eqx.filter_jit
     def __call__(self, params: Params, state: State) -> State:
@@ -46,7 +54,9 @@ class Step(eqx.Module):
 
     def advance(self, params: Params, state: State, derived) -> State:
         """One step, given ``derived = self.integrator.precompute(params)`` (see Integrator)."""
-        if derived is None:
+        if self.scene.contact_pairs:
+            new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
+        elif derived is None:
             new = self.integrator.step(self.scene, params, state, self.dt)
         else:
             new = self.integrator.step(self.scene, params, state, self.dt, derived)
@@ -62,8 +72,21 @@ class Step(eqx.Module):
         return new
 
 
-def make_step(scene: Scene, integrator: Integrator, dt: float, *, debug: bool = False) -> Step:
+def make_step(
+    scene: Scene,
+    integrator: Integrator,
+    dt: float,
+    *,
+    debug: bool = False,
+    contact: ContactSettings | None = None,
+) -> Step:
     """The step function of ``scene`` advanced by ``integrator`` with time step ``dt`` (s).
+
+    If the scene declares contact pairs, each step is the contact step of
+    :mod:`jaxrb.contact` (kick, contact solve, drift, kick, with the time of impact
+    located inside the step), configured by ``contact`` (default
+    :class:`jaxrb.ContactSettings()`); the integrator then supplies the torque-free drift
+    of the attitude. A scene without contacts compiles no contact code at all.
 
     With ``debug=True`` the step raises (also inside ``jit``, through
     ``equinox.error_if``) as soon as the state turns NaN or infinite, instead of letting
@@ -87,7 +110,11 @@ def make_step(scene: Scene, integrator: Integrator, dt: float, *, debug: bool = 
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}.") from None
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive, finite number of seconds, got {dt}.")
-    return Step(scene=scene, integrator=integrator, dt=dt, debug=debug)
+    if contact is None:
+        contact = ContactSettings()
+    if not isinstance(contact, ContactSettings):
+        raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
+    return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact)
 
 
 @eqx.filter_jit

@@ -52,6 +52,11 @@ class Params(eqx.Module):
             declares :class:`jaxrb.AngularDamping`.
         extra: any pytree of arrays, passed untouched to user force functions (their
             own differentiable parameters). ``None`` by default.
+        restitution: ``(P,)`` dimensionless, in ``[0, 1]``, one per contact pair in
+            ``scene.contact_pairs`` order: Newton's coefficient, the ratio of separating
+            to approaching normal velocity at an impact. ``(0,)`` without contacts.
+        friction: ``(P,)`` dimensionless, ``>= 0``: Coulomb's coefficient per contact pair
+            (one value for static and kinetic friction). ``(0,)`` without contacts.
     """
 
     mass: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
@@ -60,6 +65,8 @@ class Params(eqx.Module):
     linear_damping: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
     angular_damping: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
     extra: Any = None
+    restitution: Float[Array, " p"] = eqx.field(converter=jnp.asarray, default=())
+    friction: Float[Array, " p"] = eqx.field(converter=jnp.asarray, default=())
 
     def replace(self, **changes) -> Params:
         """A copy with some fields changed, e.g. ``params.replace(mass=params.mass * 2)``.
@@ -84,6 +91,9 @@ class State(eqx.Module):
             (:class:`jaxrb.integrators.ExplicitEuler`) carries its rotation matrix ``A``
             here, because it updates ``A`` itself (``A <- A + dt w~ A``); then this
             matrix, not the quaternion, is the body's attitude.
+        contact_impulse: ``(C, 3)`` or ``None``. In a scene with contacts, the impulses
+            (N s; normal, tangent, tangent) of each contact slot in the last step, kept to
+            warm-start the next step's solver. :meth:`jaxrb.Step.prepare` adds it.
     """
 
     position: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
@@ -92,6 +102,7 @@ class State(eqx.Module):
     angular_momentum: Float[Array, "n 3"] = eqx.field(converter=jnp.asarray)
     time: Float[Array, ""] = eqx.field(converter=jnp.asarray)
     rotation: Float[Array, "n 3 3"] | None = None
+    contact_impulse: Float[Array, "c 3"] | None = None
 
     def replace(self, **changes) -> State:
         """A copy with some fields changed, e.g. ``state.replace(velocity=v)``."""

@@ -1,0 +1,139 @@
+"""A scene's contact slots: which bodies each slot joins, and their detection at one pose.
+
+Everything here that decides *structure* runs once, in Python, when a step is built: the
+scene's contact pairs are grouped by their (shape, shape) type so that each group is one
+``jax.vmap`` of one narrow-phase function (a scene compiles only the pair functions it
+declares), and the slots are coloured so that no two slots of one colour move the same
+body. The solvers then update a whole colour at once and still do Gauss-Seidel.
+
+Body indices: ``0 .. N-1`` are the scene's bodies, ``N`` is the static ground (zero inverse
+mass), ``N + 1`` is a padding body for the unused places of a colour (also static).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import spatial
+from ..collision import Contact, collide, concatenate_contacts, max_contacts
+from ..scene import GROUND, Scene
+from ..state import State
+
+__all__ = ["Layout", "build_layout", "detect"]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Group:
+    """Pairs sharing one (shape A, shape B): one vmapped narrow-phase call."""
+
+    shape_a: object
+    shape_b: object
+    body_a: tuple[int, ...]
+    body_b: tuple[int, ...]  # N for the ground
+    pair_index: tuple[int, ...]
+    slots: int  # K per pair
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Static description of a scene's ``C`` contact slots (hashable).
+
+    Attributes:
+        num_bodies: ``N``.
+        groups: the vmapped narrow-phase calls, in slot order.
+        body_a, body_b: ``(C,)`` body index of each slot's A and B (``N``: the ground).
+        pair: ``(C,)`` index of each slot's contact pair (for its coefficients).
+        colours: ``(num_colours, width)`` slot indices, ``C`` marking padding; no two
+            real slots of one colour share a dynamic body.
+    """
+
+    num_bodies: int
+    groups: tuple[_Group, ...]
+    body_a: tuple[int, ...]
+    body_b: tuple[int, ...]
+    pair: tuple[int, ...]
+    colours: tuple[tuple[int, ...], ...]
+
+    @property
+    def num_slots(self) -> int:
+        return len(self.body_a)
+
+
+def _colour(body_a, body_b, num_bodies) -> list[list[int]]:
+    """Greedy colouring: slots sharing a dynamic body get different colours."""
+    colours: list[list[int]] = []
+    used: list[set[int]] = []
+    for slot, (a, b) in enumerate(zip(body_a, body_b, strict=True)):
+        moving = {x for x in (a, b) if x < num_bodies}
+        for c, bodies in enumerate(used):
+            if not (bodies & moving):
+                colours[c].append(slot)
+                bodies |= moving
+                break
+        else:
+            colours.append([slot])
+            used.append(set(moving))
+    return colours
+
+
+def build_layout(scene: Scene) -> Layout:
+    """Group and colour ``scene.contact_pairs`` (static; called when a step is built)."""
+    n = scene.num_bodies
+    keyed: dict[tuple, list[tuple[int, int, int]]] = {}
+    for p, (a, b) in enumerate(scene.contact_pairs):
+        ia = scene.index(a)
+        ib = n if b == GROUND else scene.index(b)
+        shape_b = scene.ground if b == GROUND else scene.bodies[ib].shape
+        keyed.setdefault((scene.bodies[ia].shape, shape_b), []).append((ia, ib, p))
+    groups = []
+    body_a: list[int] = []
+    body_b: list[int] = []
+    pair: list[int] = []
+    for (shape_a, shape_b), members in keyed.items():
+        k = max_contacts(shape_a, shape_b)
+        ia, ib, ip = (tuple(x) for x in zip(*members, strict=True))
+        groups.append(_Group(shape_a, shape_b, ia, ib, ip, k))
+        for a, b, p in members:
+            body_a += [a] * k
+            body_b += [b] * k
+            pair += [p] * k
+    colours = _colour(body_a, body_b, n)
+    width = max((len(c) for c in colours), default=0)
+    padded = tuple(tuple(c + [len(body_a)] * (width - len(c))) for c in colours)
+    return Layout(n, tuple(groups), tuple(body_a), tuple(body_b), tuple(pair), padded)
+
+
+def _shape_poses(scene: Scene, state: State):
+    """World pose of every body's shape frame: ``(N, 3)`` positions, ``(N, 4)`` orientations."""
+    offsets = jnp.asarray([b.shape_offset for b in scene.bodies], dtype=state.position.dtype)
+    return state.position + spatial.quat_rotate(state.orientation, offsets), state.orientation
+
+
+def detect(scene: Scene, layout: Layout, state: State, margin: float) -> Contact:
+    """All ``C`` contact slots of the scene at ``state``: a :class:`Contact` with ``(C, ...)`` fields.
+
+    Normals point from B to A (A is the pair's first body; the ground is always B).
+    """
+    positions, orientations = _shape_poses(scene, state)
+    parts = []
+    for g in layout.groups:
+        ia = np.asarray(g.body_a)
+        pa, qa = positions[ia], orientations[ia]
+        if g.body_b[0] == layout.num_bodies:  # the ground has no pose
+            contact = jax.vmap(lambda p, q, g=g: collide(g.shape_a, p, q, g.shape_b, None, None, margin))(pa, qa)
+        else:
+            ib = np.asarray(g.body_b)
+            contact = jax.vmap(
+                lambda p, q, pb, qb, g=g: collide(g.shape_a, p, q, g.shape_b, pb, qb, margin)
+            )(pa, qa, positions[ib], orientations[ib])
+        parts.append(Contact(
+            point=contact.point.reshape(-1, 3),
+            normal=contact.normal.reshape(-1, 3),
+            gap=contact.gap.reshape(-1),
+            active=contact.active.reshape(-1),
+        ))
+    return concatenate_contacts(parts)

@@ -1,0 +1,82 @@
+"""Static options of the contact stage of a step."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+__all__ = ["ContactSettings"]
+
+#: m/s: the approach speed the default margin covers in one step.
+DEFAULT_MARGIN_SPEED = 10.0
+
+
+def _check(name: str, value, *, integer: bool = False, positive: bool = False, unit: bool = False):
+    ok = isinstance(value, int) and not isinstance(value, bool) if integer else isinstance(value, (int, float))
+    ok = ok and math.isfinite(value) and (value > 0 if positive else value >= 0)
+    if unit:
+        ok = ok and value <= 1
+    if not ok:
+        kind = "a positive integer" if integer else ("a number in [0, 1]" if unit else
+                                                       "a positive number" if positive else "a number >= 0")
+        raise ValueError(f"ContactSettings.{name} must be {kind}, got {value!r}.")
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSettings:
+    """How a step resolves contacts (static: changing it recompiles). Pass to :func:`jaxrb.make_step`.
+
+    Attributes:
+        solver: ``"pgs"``, projected Gauss-Seidel (sequential impulses) for friction and
+            normals; or ``"exact"``, which solves the normal impulses of all contacts
+            together as one LCP by a semismooth Newton method (exact to round-off for the
+            small contact sets it is meant for, e.g. a heavy body on a light one, where PGS
+            contracts only by ``M/(M+m)`` per sweep) and friction by PGS sweeps between.
+        iterations: PGS sweeps per solve (``"exact"``: outer normal/friction alternations).
+        newton_iterations: ``"exact"`` only: Newton steps per normal solve.
+        warm_start: start each step's solve from the previous step's impulses (kept in
+            ``State.contact_impulse``).
+        restitution_threshold: m/s. Impacts slower than this are plastic (``e = 0``), so a
+            resting body does not micro-bounce on the velocity gravity gives it in one step.
+        margin: m. Slots closer than this are solved ahead of contact ("speculative"
+            contacts, which may approach by ``gap`` in the step but not pass), and only
+            they are searched for a time of impact. It must exceed the largest approach
+            speed times ``dt``. Default ``None``: ``0.01 m + (10 m/s) dt``.
+        time_of_impact: locate the first new impact inside each step: advance to it,
+            apply the impulse, finish the step. Bounce heights then do not depend on ``dt``.
+        toi_iterations: root-finding iterations for the time of impact.
+        position_iterations: PGS sweeps of the split-impulse penetration correction.
+        position_correction: fraction of the penetration (beyond ``penetration_slop``)
+            removed per step. The correction moves positions only, never velocities, so it
+            adds no kinetic energy (split impulse; not Baumgarte on velocity).
+        penetration_slop: m, penetration left alone (keeps resting contacts in contact).
+    """
+
+    solver: str = "pgs"
+    iterations: int = 20
+    newton_iterations: int = 8
+    warm_start: bool = True
+    restitution_threshold: float = 0.25
+    margin: float | None = None
+    time_of_impact: bool = True
+    toi_iterations: int = 14
+    position_iterations: int = 8
+    position_correction: float = 0.8
+    penetration_slop: float = 1e-5
+
+    def __post_init__(self):
+        if self.solver not in ("pgs", "exact"):
+            raise ValueError(f"ContactSettings.solver must be 'pgs' or 'exact', got {self.solver!r}.")
+        for name in ("iterations", "newton_iterations", "toi_iterations", "position_iterations"):
+            _check(name, getattr(self, name), integer=True, positive=True)
+        for name in ("restitution_threshold", "penetration_slop"):
+            _check(name, getattr(self, name))
+        if self.margin is not None:
+            _check("margin", self.margin)
+        _check("position_correction", self.position_correction, unit=True)
+        if not isinstance(self.warm_start, bool) or not isinstance(self.time_of_impact, bool):
+            raise ValueError("ContactSettings.warm_start and time_of_impact must be True or False.")
+
+    def margin_for(self, dt: float) -> float:
+        """The detection margin (m) used with time step ``dt``."""
+        return self.margin if self.margin is not None else 0.01 + DEFAULT_MARGIN_SPEED * dt

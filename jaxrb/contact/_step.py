@@ -1,0 +1,291 @@
+"""The time step of a scene with contacts: kick, solve, drift, kick, with the impact located inside.
+
+One step of length ``h`` from state ``s`` (all bodies at once):
+
+1. **Kick.** ``v <- v + h/2 F/M``, ``L <- L + h/2 tau`` (forces at the start).
+2. **Solve.** Contacts are detected at the start pose (slots closer than ``margin``).
+   Projected Gauss-Seidel finds impulses so that every active slot's normal velocity
+   ``u_n`` after them is at least its target: ``-gap/h`` ahead of contact (speculative:
+   it may close the gap but not pass it), ``0`` in contact, ``-e u_n^-`` at an impact
+   faster than the restitution threshold; friction inside Coulomb's cone.
+3. **Drift.** The scene's integrator advances the *force-free* motion by ``h`` with those
+   velocities: ``x <- x + h v`` and its torque-free attitude flow under the new ``L``
+   (the splitting's exact sub-rotations, RK4's stages, ... whichever was chosen). The
+   penetration correction (split impulse) adds a pseudo-velocity to this drift only, so
+   positions are corrected and velocities are not: no energy is added.
+4. **Kick.** ``v <- v + h/2 F/M``, ``L <- L + h/2 tau`` (forces at the end).
+
+Without contacts this is Stoermer-Verlet: exact for constant gravity, second order.
+Resting on the ground, the drift velocity is exactly zero, so nothing creeps; the velocity
+reported *between* steps is then ``h/2 g`` (leapfrog's staggered velocity), not zero.
+
+**Time of impact.** If a pair that is apart at the start would pass through contact during
+the step, the step is split at the first such instant ``tau h``: the free motion to it,
+the impact (Newton's law on the velocities *at* contact), then the rest of the step. The
+instant is the root of the pair's signed distance along the free motion, found by a fixed
+number of Illinois (regula falsi) iterations and finished by one Newton step whose
+derivative is the implicit-function theorem's, ``d tau = -dD / D'``: gradients account
+for the time of impact. Other impacts in the same step are handled at its start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import spatial
+from ..dynamics import linear_acceleration, wrench
+from ..forces import Gravity
+from ..scene import Scene
+from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
+from ._layout import Layout, build_layout, detect
+from ._lcp import solve_exact
+from ._settings import ContactSettings
+from ._solver import Bodies, Frames, frames, solve
+
+__all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses"]
+
+#: m; slots this close count as touching for the impact law at the time of impact.
+TOUCHING = 1e-4
+
+
+@functools.lru_cache(maxsize=64)
+def layout_of(scene: Scene) -> Layout:
+    return build_layout(scene)
+
+
+@functools.lru_cache(maxsize=64)
+def free_scene_of(scene: Scene) -> Scene:
+    """The same bodies with no forces and no contacts: its step is the torque-free drift."""
+    return dataclasses.replace(scene, gravity=None, forces=(), contacts=())
+
+
+def initial_impulses(scene: Scene, dtype) -> jax.Array:
+    return jnp.zeros((layout_of(scene).num_slots, 3), dtype)
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def _solver_bodies(params: Params, state: State, velocity, angular_momentum) -> tuple[Bodies, jax.Array]:
+    """Rows for the solver (bodies, ground, padding) and the centres of mass ``(N + 2, 3)``."""
+    dtype = state.position.dtype
+    pad = lambda x: jnp.concatenate([x, jnp.zeros((2, *x.shape[1:]), dtype)])  # noqa: E731
+    inv_inertia = inverse_world_inertia(params, state)
+    omega = spatial.matvec(inv_inertia, angular_momentum)
+    bodies = Bodies(pad(1.0 / params.mass), pad(inv_inertia), pad(velocity), pad(omega))
+    return bodies, pad(state.position)
+
+
+def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
+    """``u_n`` of every real slot ``(C,)``, m/s."""
+    a, b = f.body_a[:-1], f.body_b[:-1]
+    u = (bodies.velocity[a] + spatial.cross(bodies.angular_velocity[a], f.r_a[:-1])
+         - bodies.velocity[b] - spatial.cross(bodies.angular_velocity[b], f.r_b[:-1]))
+    return spatial.dot(f.basis[:-1, 0], u)
+
+
+def _slot_coefficients(layout: Layout, params: Params):
+    pair = np.asarray(layout.pair, dtype=np.int32)
+    return params.restitution[pair], params.friction[pair]
+
+
+def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu, active, lam0):
+    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
+    if settings.solver == "exact":
+        return solve_exact(bodies, f, colours, target, mu, active, lam0,
+                           settings.iterations, settings.newton_iterations)
+    return solve(bodies, f, colours, target, mu, active, lam0, settings.iterations)
+
+
+def _omega_to_momentum(params, state, omega_new, omega_old, angular_momentum):
+    n = state.position.shape[0]
+    return angular_momentum + spatial.matvec(world_inertia(params, state), omega_new[:n] - omega_old[:n])
+
+
+def _closing_kick(scene: Scene, params: Params, state: State, half: float) -> State:
+    force, torque = wrench(scene, params, state)
+    if any(not isinstance(m, Gravity) for m in scene.force_models):
+        # Velocity-dependent forces: evaluate at the predicted end velocity (see kick_drift_kick).
+        predicted = dataclasses.replace(
+            state, velocity=state.velocity + half * linear_acceleration(params, force),
+            angular_momentum=state.angular_momentum + half * torque)
+        force, torque = wrench(scene, params, predicted)
+    return dataclasses.replace(
+        state, velocity=state.velocity + half * linear_acceleration(params, force),
+        angular_momentum=state.angular_momentum + half * torque)
+
+
+# ------------------------------------------------------------------------------ steps
+
+
+@dataclasses.dataclass(frozen=True)
+class _Ctx:
+    scene: Scene
+    layout: Layout
+    integrator: object
+    settings: ContactSettings
+    dt: float
+
+    @property
+    def margin(self) -> float:
+        return self.settings.margin_for(self.dt)
+
+
+def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce: bool = True) -> State:
+    """Kick, solve, drift, kick over ``h`` (a traced length when the step is split)."""
+    scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
+    h = jnp.maximum(h, 1e-6 * ctx.dt)  # a zero-length remainder must not divide by zero
+    half = 0.5 * h
+    contact = detect(scene, layout, state, ctx.margin)
+    force, torque = wrench(scene, params, state)
+    velocity = state.velocity + half * linear_acceleration(params, force)
+    momentum = state.angular_momentum + half * torque
+
+    start, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
+    bodies, _ = _solver_bodies(params, state, velocity, momentum)
+    f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
+    e, mu = _slot_coefficients(layout, params)
+    u_start = _normal_velocity(start, f)
+    u_mid = _normal_velocity(bodies, f)
+    gap = contact.gap
+    target = jnp.where(gap > 0, -gap / h, 0.0)
+    if bounce:
+        # An impact this step (it would close the gap) faster than the threshold bounces.
+        hits = (gap + h * u_mid < 0) & (u_start < -settings.restitution_threshold)
+        target = jnp.where(hits, -e * u_start, target)
+    lam0 = lam0 if settings.warm_start else jnp.zeros_like(lam0)
+    solved, lam = _run_solver(settings, layout, bodies, f, target, mu, contact.active, lam0)
+    velocity = solved.velocity[: scene.num_bodies]
+    momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity, momentum)
+
+    # Split impulse: pseudo-velocities that remove penetration, used by the drift only.
+    depth = jnp.maximum(-gap - settings.penetration_slop, 0.0)
+    push = contact.active & (depth > 0)
+    still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
+                                angular_velocity=jnp.zeros_like(bodies.angular_velocity))
+    pseudo, _ = solve(still, f, jnp.asarray(np.asarray(layout.colours, dtype=np.int32)),
+                      settings.position_correction * depth / h, jnp.zeros_like(mu), push,
+                      jnp.zeros_like(lam0), settings.position_iterations, friction=False)
+    pseudo_momentum = _omega_to_momentum(params, state, pseudo.angular_velocity,
+                                         still.angular_velocity, jnp.zeros_like(momentum))
+
+    moving = dataclasses.replace(state, velocity=velocity + pseudo.velocity[: scene.num_bodies],
+                                 angular_momentum=momentum + pseudo_momentum, contact_impulse=None)
+    free = free_scene_of(scene)
+    if derived is None:
+        drifted = ctx.integrator.step(free, params, moving, h)
+    else:
+        drifted = ctx.integrator.step(free, params, moving, h, derived)
+    drifted = dataclasses.replace(drifted, velocity=velocity, angular_momentum=momentum)
+    end = _closing_kick(scene, params, drifted, half)
+    return dataclasses.replace(end, contact_impulse=lam.astype(state.position.dtype))
+
+
+def _impact(ctx: _Ctx, params: Params, state: State) -> State:
+    """Newton's impact law at an instant of contact: the velocity jump, positions unchanged."""
+    scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
+    contact = detect(scene, layout, state, ctx.margin)
+    bodies, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
+    f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
+    e, mu = _slot_coefficients(layout, params)
+    u = _normal_velocity(bodies, f)
+    target = jnp.where(u < -settings.restitution_threshold, -e * u, 0.0)
+    active = contact.active & (contact.gap <= TOUCHING)
+    solved, _ = _run_solver(settings, layout, bodies, f, target, mu, active,
+                            jnp.zeros((layout.num_slots, 3), state.position.dtype))
+    momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
+                                  state.angular_momentum)
+    return dataclasses.replace(state, velocity=solved.velocity[: scene.num_bodies], angular_momentum=momentum)
+
+
+def _pair_gaps(ctx: _Ctx, state: State) -> jax.Array:
+    """Signed distance of each contact pair ``(P,)``, m (inactive slots count as ``margin``)."""
+    contact = detect(ctx.scene, ctx.layout, state, ctx.margin)
+    gap = jnp.where(contact.active, contact.gap, ctx.margin)
+    pair = np.asarray(ctx.layout.pair, dtype=np.int32)
+    return jax.ops.segment_min(gap, pair, num_segments=ctx.scene.num_contact_pairs)
+
+
+def _free_pose(params: Params, state: State, acceleration, omega, t) -> State:
+    """Pose after ``t`` seconds of free flight: constant acceleration, constant spin."""
+    position = state.position + t * state.velocity + 0.5 * t * t * acceleration
+    orientation = spatial.quat_normalize(spatial.quat_multiply(spatial.quat_exp(t * omega), state.orientation))
+    return dataclasses.replace(state, position=position, orientation=orientation, rotation=None)
+
+
+def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate) -> jax.Array:
+    """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches."""
+    force, _ = wrench(ctx.scene, params, state)
+    acceleration = linear_acceleration(params, force)
+    omega = angular_velocity(params, state)
+    big = jnp.asarray(jnp.finfo(state.position.dtype).max / 4, state.position.dtype)
+
+    def distance(tau):
+        gaps = _pair_gaps(ctx, _free_pose(params, state, acceleration, omega, tau * ctx.dt))
+        return jnp.min(jnp.where(candidate, gaps, big))
+
+    d0, d1 = distance(jnp.zeros(())), distance(jnp.ones(()))
+    frozen = jax.lax.stop_gradient
+
+    def illinois(carry, _):
+        a, fa, b, fb, side = carry
+        c = (a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0)
+        c = jnp.clip(c, a, b)
+        fc = frozen(distance(c))
+        left = fc * fa > 0  # root in [c, b]
+        a2, fa2 = jnp.where(left, c, a), jnp.where(left, fc, fa)
+        b2, fb2 = jnp.where(left, b, c), jnp.where(left, fb, fc)
+        # Illinois: halve the stale end's value when the same side moves twice.
+        fb2 = jnp.where(left & (side > 0), 0.5 * fb2, fb2)
+        fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
+        return (a2, fa2, b2, fb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
+
+    start = (jnp.zeros_like(d0), frozen(d0), jnp.ones_like(d1), frozen(d1), jnp.zeros((), jnp.int32))
+    (a, fa, b, fb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
+    root = frozen(jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b))
+    # One Newton step at the root: its value is the root, its derivative the implicit one.
+    value, slope = jax.jvp(distance, (root,), (jnp.ones_like(root),))
+    slope = jnp.where(slope < 0, slope, -1.0)
+    tau = root - value / slope
+    return jnp.where(d1 < 0, jnp.clip(tau, 0.0, 1.0), 1.0)
+
+
+def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
+                 params: Params, state: State, derived) -> State:
+    """One step of a scene with contacts (see the module docstring)."""
+    ctx = _Ctx(scene, layout_of(scene), integrator, settings, dt)
+    lam0 = state.contact_impulse
+    if lam0 is None:
+        lam0 = initial_impulses(scene, state.position.dtype)
+    if not settings.time_of_impact:
+        return _regular(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived)
+
+    # Which pairs, apart at the start, would close within the step (at the kicked velocity)?
+    contact = detect(scene, ctx.layout, state, ctx.margin)
+    force, torque = wrench(scene, params, state)
+    velocity = state.velocity + 0.5 * dt * linear_acceleration(params, force)
+    momentum = state.angular_momentum + 0.5 * dt * torque
+    bodies, position = _solver_bodies(params, state, velocity, momentum)
+    f = frames(bodies, ctx.layout.body_a, ctx.layout.body_b, contact.point, contact.normal, position)
+    pair = np.asarray(ctx.layout.pair, dtype=np.int32)
+    apart = jax.ops.segment_min(jnp.where(contact.active, contact.gap, ctx.margin), pair,
+                                num_segments=scene.num_contact_pairs) > settings.penetration_slop
+    closing = contact.active & (contact.gap + dt * _normal_velocity(bodies, f) < 0)
+    candidate = apart & (jax.ops.segment_max(closing.astype(jnp.int32), pair,
+                                             num_segments=scene.num_contact_pairs) > 0)
+
+    def split(state):
+        tau = _time_of_impact(ctx, params, state, candidate)
+        first = _regular(ctx, params, state, tau * dt, lam0, derived, bounce=False)
+        hit = _impact(ctx, params, first)
+        return _regular(ctx, params, hit, (1.0 - tau) * dt, first.contact_impulse, derived)
+
+    def whole(state):
+        return _regular(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived)
+
+    return jax.lax.cond(jnp.any(candidate), split, whole, state)
