@@ -15,3 +15,4 @@ the contact stage configured by :class:`ContactSettings` (passed to :func:`jaxrb
 
 from ._impulse import collision_impulse as collision_impulse
 from ._settings import ContactSettings as ContactSettings
+from ._step import resolve_impacts as resolve_impacts

@@ -22,10 +22,10 @@ mode crosses them.
 
 Energy. Every single update is chosen so that it cannot add kinetic energy: an impulse
 ``dP`` changes it by ``u . dP + dP.K dP / 2``. A normal push is capped at ``2|u_n|/K_nn``
-(the elastic bound), and a friction update that would add energy (possible when the
-Delassus block couples the tangents, as in Kane's paradox of Newton's restitution with
-friction) is shortened to the energy minimiser along its direction. So an impact with
-``e <= 1`` never creates energy, whatever the iteration count.
+(the elastic bound; without it, friction that has already slowed the approach would let
+Newton's law add energy, Kane's paradox), and a friction update is a projected-gradient
+step of length ``1/k_max``, which only descends. So an impact with ``e <= 1`` never
+creates energy, whatever the iteration count.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from jaxtyping import Array, Float
 from .. import spatial
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
-           "relative_velocity"]
+           "relative_velocity", "collisions"]
 
 
 class Bodies(eqx.Module):
@@ -144,11 +144,6 @@ def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
     return _apply(bodies, f, jnp.arange(c), local_impulses)
 
 
-def _energy_change(u, k, d):
-    """Kinetic-energy change ``u.d + d.K d / 2`` of a local impulse ``d`` (last axis)."""
-    return jnp.sum(u * d, -1) + 0.5 * jnp.sum(d * jnp.einsum("...ij,...j->...i", k, d), -1)
-
-
 def _update(bodies: Bodies, f: Frames, idx, lam, target, mu, active, friction: bool):
     """One projected Gauss-Seidel update of the slots ``idx`` (one colour; no shared body)."""
     u = relative_velocity(bodies, f, idx)
@@ -165,28 +160,76 @@ def _update(bodies: Bodies, f: Frames, idx, lam, target, mu, active, friction: b
     lam = lam.at[idx, 0].set(new_n)
     if not friction:
         return bodies, lam
-    # Friction: stop the tangential slip with the 2x2 block, then project onto the disk
-    # |lambda_t| <= mu lambda_n (Coulomb's cone). Shorten the update if it adds energy.
+    # Friction: a projected-gradient step on the disk |lambda_t| <= mu lambda_n (Coulomb's
+    # cone), with the step 1/k_max, k_max the largest eigenvalue of the 2x2 tangential block.
+    # The step is along -u_t, so a sliding contact's friction opposes its slip (maximal
+    # dissipation); a full K_tt^-1 step would not, and would twist a sliding box. A projected
+    # gradient step with step <= 1/k_max cannot add energy.
     u = relative_velocity(bodies, f, idx)
-    k_tt = k[:, 1:, 1:]
-    det = k_tt[:, 0, 0] * k_tt[:, 1, 1] - k_tt[:, 0, 1] * k_tt[:, 1, 0]
-    ut = u[:, 1:]
-    stick = -jnp.stack([k_tt[:, 1, 1] * ut[:, 0] - k_tt[:, 0, 1] * ut[:, 1],
-                        k_tt[:, 0, 0] * ut[:, 1] - k_tt[:, 1, 0] * ut[:, 0]], -1) / det[:, None]
+    k_max = _largest_tangential_eigenvalue(k)
     old_t = lam[idx, 1:]
-    wanted = old_t + stick
+    wanted = old_t - u[:, 1:] / k_max[:, None]
     radius = mu[idx] * new_n
     norm = spatial.safe_norm(wanted)
     scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
     d_t = jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
-    gain = _energy_change(ut, k_tt, d_t)
-    curvature = _energy_change(jnp.zeros_like(ut), k_tt, d_t) * 2.0
-    slope = jnp.sum(ut * d_t, -1)
-    alpha = jnp.clip(-slope / jnp.where(curvature > 0, curvature, 1.0), 0.0, 1.0)
-    d_t = jnp.where((gain > 0)[:, None], alpha[:, None] * d_t, d_t)
     bodies = _apply(bodies, f, idx, jnp.concatenate([jnp.zeros_like(d_t[:, :1]), d_t], -1))
     lam = lam.at[idx, 1:].add(d_t)
     return bodies, lam
+
+
+def _collision_update(bodies: Bodies, f: Frames, idx, e, mu, eligible, threshold):
+    """Binary collisions of the slots ``idx`` (one colour) that approach faster than ``threshold``.
+
+    The seed's impulse from the *current* relative velocity, ``j = -(1 + e) u_n / K_nn``,
+    then friction bounded by ``mu j``. Impulses are new each time (never taken back), as in
+    a sequence of two-body collisions.
+    """
+    u = relative_velocity(bodies, f, idx)
+    k = f.delassus[idx]
+    hit = eligible[idx] & (u[:, 0] < -threshold)
+    j = jnp.where(hit, -(1.0 + e[idx]) * u[:, 0] / k[:, 0, 0], 0.0)
+    bodies = _apply(bodies, f, idx, jnp.stack([j, jnp.zeros_like(j), jnp.zeros_like(j)], -1))
+    u = relative_velocity(bodies, f, idx)
+    k_max = _largest_tangential_eigenvalue(k)
+    wanted = -u[:, 1:] / k_max[:, None]
+    radius = mu[idx] * j
+    norm = spatial.safe_norm(wanted)
+    scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
+    d_t = jnp.where(hit[:, None], wanted * scale[:, None], 0.0)
+    bodies = _apply(bodies, f, idx, jnp.concatenate([jnp.zeros_like(j)[:, None], d_t], -1))
+    return bodies, jnp.concatenate([j[:, None], d_t], -1)
+
+
+def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, iterations: int):
+    """Sequential binary collisions (the impact law), ``iterations`` sweeps; impulses ``(C, 3)``.
+
+    Each slot approaching faster than ``threshold`` gets Newton's impulse with its ``e`` from
+    its current velocity, so momentum travels along a row of touching bodies as a sequence
+    of collisions (Newton's cradle) rather than being shared by a simultaneous solve. Each
+    collision with ``e <= 1`` and its bounded friction cannot add energy. ``e``, ``mu`` and
+    ``eligible`` are ``(C,)``.
+    """
+    pad1 = lambda x, v: jnp.concatenate([x, jnp.full((1, *x.shape[1:]), v, x.dtype)])  # noqa: E731
+    e, mu, eligible = pad1(e, 0.0), pad1(mu, 0.0), pad1(eligible, False)
+    total = jnp.zeros((e.shape[0], 3), bodies.velocity.dtype)
+
+    def colour_step(carry, idx):
+        b, total = carry
+        b, impulse = _collision_update(b, f, idx, e, mu, eligible, threshold)
+        return (b, total.at[idx].add(impulse)), None
+
+    def sweep(carry, _):
+        return jax.lax.scan(colour_step, carry, colours)[0], None
+
+    (bodies, total), _ = jax.lax.scan(sweep, (bodies, total), None, length=iterations)
+    return bodies, total[:-1]
+
+
+def _largest_tangential_eigenvalue(k):
+    k_tt = k[:, 1:, 1:]
+    spread = spatial.safe_norm(jnp.stack([0.5 * (k_tt[:, 0, 0] - k_tt[:, 1, 1]), k_tt[:, 0, 1]], -1))
+    return 0.5 * (k_tt[:, 0, 0] + k_tt[:, 1, 1]) + spread
 
 
 def pad_slots(target, mu, active, lam0):

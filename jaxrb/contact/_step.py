@@ -45,9 +45,9 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import Bodies, Frames, frames, solve
+from ._solver import Bodies, Frames, collisions, frames, solve
 
-__all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses"]
+__all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
 
 #: m; slots this close count as touching for the impact law at the time of impact.
 TOUCHING = 1e-4
@@ -148,20 +148,25 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce: 
 
     start, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
     bodies, _ = _solver_bodies(params, state, velocity, momentum)
+    unsolved_omega = bodies.angular_velocity
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(layout, params)
     u_start = _normal_velocity(start, f)
     u_mid = _normal_velocity(bodies, f)
     gap = contact.gap
-    target = jnp.where(gap > 0, -gap / h, 0.0)
+    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
     if bounce:
-        # An impact this step (it would close the gap) faster than the threshold bounces.
-        hits = (gap + h * u_mid < 0) & (u_start < -settings.restitution_threshold)
-        target = jnp.where(hits, -e * u_start, target)
+        # Impacts: slots that touch or would close this step collide (Newton's law) first.
+        closing = contact.active & ((gap <= TOUCHING) | (gap + h * u_mid < 0))
+        bodies, _ = collisions(bodies, f, colours, e, mu, closing, settings.restitution_threshold,
+                               settings.iterations)
+    del u_start
+    # Then resting contact: u_n >= 0 in contact, u_n >= -gap/h ahead of it (speculative).
+    target = jnp.where(gap > 0, -gap / h, 0.0)
     lam0 = lam0 if settings.warm_start else jnp.zeros_like(lam0)
     solved, lam = _run_solver(settings, layout, bodies, f, target, mu, contact.active, lam0)
     velocity = solved.velocity[: scene.num_bodies]
-    momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity, momentum)
+    momentum = _omega_to_momentum(params, state, solved.angular_velocity, unsolved_omega, momentum)
 
     # Split impulse: pseudo-velocities that remove penetration, used by the drift only.
     depth = jnp.maximum(-gap - settings.penetration_slop, 0.0)
@@ -186,18 +191,30 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce: 
     return dataclasses.replace(end, contact_impulse=lam.astype(state.position.dtype))
 
 
+def resolve_impacts(scene: Scene, params: Params, state: State, settings: ContactSettings | None = None,
+                    dt: float = 1e-3) -> State:
+    """Newton's impact law at an instant: the velocity jump of every touching, approaching slot.
+
+    Positions are unchanged. Slots within ``1e-4`` m that approach faster than the
+    restitution threshold collide in sequence (see ``collisions``), each with the impulse
+    of seed 000, ``j = -(1 + e) u_n / (n . K n)``, and friction bounded by ``mu j``.
+    ``dt`` only sets the default detection margin.
+    """
+    settings = ContactSettings() if settings is None else settings
+    ctx = _Ctx(scene, layout_of(scene), None, settings, dt)
+    return _impact(ctx, params, state)
+
+
 def _impact(ctx: _Ctx, params: Params, state: State) -> State:
-    """Newton's impact law at an instant of contact: the velocity jump, positions unchanged."""
     scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
     contact = detect(scene, layout, state, ctx.margin)
     bodies, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(layout, params)
-    u = _normal_velocity(bodies, f)
-    target = jnp.where(u < -settings.restitution_threshold, -e * u, 0.0)
-    active = contact.active & (contact.gap <= TOUCHING)
-    solved, _ = _run_solver(settings, layout, bodies, f, target, mu, active,
-                            jnp.zeros((layout.num_slots, 3), state.position.dtype))
+    touching = contact.active & (contact.gap <= TOUCHING)
+    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
+    solved, _ = collisions(bodies, f, colours, e, mu, touching, settings.restitution_threshold,
+                           settings.iterations)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
                                   state.angular_momentum)
     return dataclasses.replace(state, velocity=solved.velocity[: scene.num_bodies], angular_momentum=momentum)
