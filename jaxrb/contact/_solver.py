@@ -94,7 +94,7 @@ def tangent_basis(normal: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
 def _arm_block(inv_mass, inv_inertia, r):
     """``inv_mass E - [r]x I^-1 [r]x`` (world frame, ``(..., 3, 3)``)."""
     skew = spatial.skew(r)
-    eye = jnp.eye(3, dtype=r.dtype)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), (*r.shape[:-1], 3, 3))
     return inv_mass[..., None, None] * eye - spatial.matmul(spatial.matmul(skew, inv_inertia), skew)
 
 

@@ -136,7 +136,7 @@ class _Ctx:
         return self.settings.margin_for(self.dt)
 
 
-def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce: bool = True) -> State:
+def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=True) -> State:
     """Kick, solve, drift, kick over ``h`` (a traced length when the step is split)."""
     scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
     h = jnp.maximum(h, 1e-6 * ctx.dt)  # a zero-length remainder must not divide by zero
@@ -155,11 +155,11 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce: 
     u_mid = _normal_velocity(bodies, f)
     gap = contact.gap
     colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
-    if bounce:
-        # Impacts: slots that touch or would close this step collide (Newton's law) first.
-        closing = contact.active & ((gap <= TOUCHING) | (gap + h * u_mid < 0))
-        bodies, _ = collisions(bodies, f, colours, e, mu, closing, settings.restitution_threshold,
-                               settings.iterations)
+    # Impacts: slots that touch or would close this step collide (Newton's law) first.
+    # (Not in the part of a split step before its located impact: ``bounce`` is False there.)
+    closing = contact.active & ((gap <= TOUCHING) | (gap + h * u_mid < 0)) & bounce
+    bodies, _ = collisions(bodies, f, colours, e, mu, closing, settings.restitution_threshold,
+                           settings.iterations)
     del u_start
     # Then resting contact: u_n >= 0 in contact, u_n >= -gap/h ahead of it (speculative).
     target = jnp.where(gap > 0, -gap / h, 0.0)
@@ -246,7 +246,8 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate) -> jax.A
         gaps = _pair_gaps(ctx, _free_pose(params, state, acceleration, omega, tau * ctx.dt))
         return jnp.min(jnp.where(candidate, gaps, big))
 
-    d0, d1 = distance(jnp.zeros(())), distance(jnp.ones(()))
+    dtype = state.position.dtype
+    d0, d1 = distance(jnp.zeros((), dtype)), distance(jnp.ones((), dtype))
     frozen = jax.lax.stop_gradient
 
     def illinois(carry, _):
@@ -296,13 +297,27 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     candidate = apart & (jax.ops.segment_max(closing.astype(jnp.int32), pair,
                                              num_segments=scene.num_contact_pairs) > 0)
 
-    def split(state):
-        tau = _time_of_impact(ctx, params, state, candidate)
-        first = _regular(ctx, params, state, tau * dt, lam0, derived, bounce=False)
-        hit = _impact(ctx, params, first)
-        return _regular(ctx, params, hit, (1.0 - tau) * dt, first.contact_impulse, derived)
+    # Split the step at the impact: [0, tau h], the impact, [tau h, h]. One scan over the
+    # two parts keeps one copy of the sub-step in the compiled program; a part of zero
+    # length is skipped (at run time, unless vmapped).
+    any_hit = jnp.any(candidate)
+    dtype = state.position.dtype
+    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate),
+                       lambda: jnp.ones((), dtype))
+    lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
-    def whole(state):
-        return _regular(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived)
+    def part(carry, inputs):
+        state, lam = carry
+        index, h = inputs
+        bounce = (index == 1) | ~any_hit
+        state = jax.lax.cond(
+            h > 0,
+            lambda s: _regular(ctx, params, s, h, lam, derived, bounce),
+            lambda s: dataclasses.replace(s, contact_impulse=lam),
+            state)
+        state = jax.lax.cond((index == 0) & any_hit, lambda s: _impact(ctx, params, s), lambda s: s, state)
+        return (state, state.contact_impulse), None
 
-    return jax.lax.cond(jnp.any(candidate), split, whole, state)
+    start = dataclasses.replace(state, contact_impulse=lam0)
+    (state, _), _ = jax.lax.scan(part, (start, lam0), (jnp.arange(2), lengths))
+    return state
