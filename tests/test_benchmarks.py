@@ -61,3 +61,13 @@ def test_work_precision_benchmark_quick(tmp_path):
     for name in integrators:
         coarse, fine = (r["attitude_error"] for r in rows if r["method"] == name and r["dtype"] == "float64")
         assert coarse / fine > 0.6 * 2 ** getattr(rb.integrators, name).order, (name, coarse, fine)
+
+
+def test_contacts_benchmark_quick(tmp_path):
+    record = load("contacts").main(["--quick", "--no-peers", "--out", str(tmp_path)])
+    results = record["results"]
+    assert set(results) >= {"box_stack", "ball_drop"}
+    for engines in (results["box_stack"], results["ball_drop"]):
+        for r in engines.values():
+            assert r["finite"] and r["compile_s"] > 0 and r["steps_per_s_1env"] > 0
+    assert (tmp_path / "contacts.png").stat().st_size > 0

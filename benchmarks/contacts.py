@@ -1,0 +1,236 @@
+"""Contact scenes: speed, compile time and accuracy of jaxrb, beside MuJoCo MJX and Brax.
+
+What it measures
+    * ``box_stack``: five cubes (half-extent 0.1 m, 1 kg) stacked at rest on the ground,
+      mu = 0.5, h = 1 ms, 2 s, contacts ``"all"`` (15 pairs, 60 slots). Accuracy: the top
+      box's drift (m) and the largest penetration (m) over the run. jaxrb runs with its
+      PGS solver and with its exact (semismooth Newton) normal solve.
+    * ``ball_drop``: a sphere (r = 0.1 m, 1 kg) dropped from 1 m clearance, e = 0.8,
+      h = 1 ms, 3 s. Accuracy: the relative error of the first three apex heights
+      against ``e^(2n)`` m (apex from energy, ``z + vz^2 / 2g``, where ``vz`` turns).
+    For each: compile time (``jax.jit(...).lower().compile()``, tracing included),
+    steps per second with one environment (a plain ``rollout``), and environment-steps
+    per second with ``--envs`` environments (``jax.vmap``), best of ``--repeats`` timed
+    calls after a warm-up, each ended by ``block_until_ready``.
+
+    Peers (``benchmarks/peers.py``) run in the same process when they import here, or in
+    another interpreter given by ``--peer-python`` (e.g. a venv with ``pip install
+    .[peers]``), whose JSON is merged into the table. Their figures come from the same
+    run of this script, on the same machine.
+
+How to run (from the repository root)
+    python benchmarks/contacts.py                       # full sizes, float32
+    python benchmarks/contacts.py --peer-python /path/to/venv/bin/python
+    python benchmarks/contacts.py --quick               # CI smoke run (tiny), temp dir
+
+It prints a table and writes ``contacts.json`` and ``contacts.png`` to ``--out``
+(default ``benchmarks/results``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxrb as rb
+
+G = 9.81
+DEFAULT_OUT = Path(__file__).resolve().parent / "results"
+HERE = Path(__file__).resolve().parent
+
+
+def box_stack(dtype):
+    box = rb.Box((0.1, 0.1, 0.1))
+    scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(5)], ground=rb.Plane(), contacts="all")
+    params = scene.params(friction=0.5, dtype=dtype)
+    state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)])
+    return scene, params, state
+
+
+def ball_drop(dtype):
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=0.8, dtype=dtype)
+    return scene, params, scene.state(params, position=(0.0, 0.0, 1.1))
+
+
+def stack_accuracy(state, traj):
+    z = np.asarray(traj.position[..., 2], dtype=float)
+    drift = float(np.linalg.norm(np.asarray(traj.position[-1, 4], float) - np.asarray(state.position[4], float)))
+    gaps = np.concatenate([z[:, :1] - 0.1, np.diff(z, axis=1) - 0.2], axis=1)
+    return {"top_drift_m": drift, "max_penetration_m": float(max(0.0, -gaps.min()))}
+
+
+def ball_accuracy(traj):
+    z = np.asarray(traj.position[:, 0, 2], float)
+    vz = np.asarray(traj.velocity[:, 0, 2], float)
+    turn = np.where((vz[:-1] > 0) & (vz[1:] <= 0))[0][:3]
+    apex = z[turn] + vz[turn] ** 2 / (2 * G) - 0.1
+    exact = 0.8 ** (2 * np.arange(1, len(apex) + 1))
+    return {"apex_rel_error": [float(x) for x in np.abs(apex / exact - 1)]}
+
+
+def timed(fn, args, repeats):
+    jax.block_until_ready(fn(*args))
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, dtype):
+    scene, params, state = make(dtype)
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3, contact=settings)
+    state = step.prepare(state)
+    num_steps = int(round(seconds / 1e-3))
+    save_every = 10 if name == "box_stack" else 1
+
+    def full(p, s):
+        return rb.rollout(step, p, s, num_steps, save_every=save_every)
+
+    def short(p, s):
+        return rb.rollout(step, p, s, timing_steps, save_every=timing_steps)[0]
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(short).lower(params, state).compile()
+    compile_s = time.perf_counter() - t0
+    one = timing_steps / timed(compiled, (params, state), repeats)
+    batch = lambda t: jax.tree.map(lambda x: jnp.broadcast_to(x, (envs, *x.shape)), t)  # noqa: E731
+    vmapped = jax.jit(jax.vmap(short))
+    many = envs * timing_steps / timed(vmapped, (batch(params), batch(state)), max(1, repeats // 2))
+    _, traj = jax.jit(full)(params, state)
+    accuracy = stack_accuracy(state, traj) if name == "box_stack" else ball_accuracy(traj)
+    finite = bool(np.all(np.isfinite(np.asarray(traj.position))))
+    return {"compile_s": compile_s, "steps_per_s_1env": one, f"env_steps_per_s_{envs}env": many,
+            "finite": finite, **accuracy}
+
+
+def run_peers(peer_python, quick):
+    if peer_python is None:
+        try:
+            sys.path.insert(0, str(HERE))
+            import peers  # noqa: PLC0415
+
+            if not any(v is True for v in peers.available().values()):
+                return {"note": f"peers not installed here: {peers.available()}"}
+            return peers.run_all(small=quick)
+        except Exception as err:  # noqa: BLE001 - report, never fail the jaxrb benchmark
+            return {"error": repr(err)}
+    code = ("import json, sys; sys.path.insert(0, %r); import peers; print('PEERS_JSON' + json.dumps(peers.run_all(small=%r)))"
+            % (str(HERE), quick))
+    out = subprocess.run([peer_python, "-c", code], capture_output=True, text=True, timeout=3600)
+    for line in out.stdout.splitlines():
+        if line.startswith("PEERS_JSON"):
+            return json.loads(line[len("PEERS_JSON"):])
+    return {"error": (out.stderr or out.stdout)[-2000:]}
+
+
+def print_table(results):
+    print(f"\n{'scene':<10} {'engine':<28} {'compile s':>9} {'steps/s 1':>11} {'env-steps/s N':>14}  accuracy")
+    for scene, engines in results.items():
+        for engine, r in engines.items():
+            if "error" in r or "note" in r:
+                print(f"{scene:<10} {engine:<28} {r.get('error', r.get('note'))[:80]}")
+                continue
+            many = next((v for k, v in r.items() if k.startswith("env_steps_per_s")), float("nan"))
+            acc = {k: (round(v, 7) if isinstance(v, float) else v) for k, v in r.items()
+                   if k in ("top_drift_m", "max_penetration_m", "apex_rel_error", "top_box_drift_m",
+                            "max_penetration_end_m", "apex1_rel_err", "apex2_rel_err", "apex3_rel_err")}
+            compile_s = r.get("compile_s", r.get("compile_s_1env", float("nan")))
+            print(f"{scene:<10} {engine:<28} {compile_s:9.2f} "
+                  f"{r.get('steps_per_s_1env', float('nan')):11.0f} {many:14.0f}  {acc}")
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, scene in zip(axes, results, strict=False):
+        names, values = [], []
+        for engine, r in results[scene].items():
+            if "steps_per_s_1env" in r:
+                names.append(engine)
+                values.append(r["steps_per_s_1env"])
+        ax.barh(names, values)
+        ax.set_xscale("log")
+        ax.set_xlabel("steps/s, one environment")
+        ax.set_title(scene)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--envs", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--timing-steps", type=int, default=200)
+    p.add_argument("--x64", action="store_true")
+    p.add_argument("--peer-python", default=None, help="interpreter with mujoco/mujoco-mjx/brax installed")
+    p.add_argument("--no-peers", action="store_true")
+    p.add_argument("--quick", action="store_true", help="tiny sizes, temp output dir (CI smoke run)")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    dtype = jnp.float64 if args.x64 else jnp.float32
+    if args.quick:
+        args.envs, args.repeats, args.timing_steps = 4, 1, 5
+        args.out = args.out or Path(tempfile.mkdtemp(prefix="jaxrb_contacts_"))
+    out = args.out or DEFAULT_OUT
+    out.mkdir(parents=True, exist_ok=True)
+    seconds = {"box_stack": 0.02 if args.quick else 2.0, "ball_drop": 0.05 if args.quick else 3.0}
+    cases = {
+        "box_stack": [("jaxrb pgs", box_stack, rb.ContactSettings()),
+                      ("jaxrb exact", box_stack, rb.ContactSettings(solver="exact"))],
+        "ball_drop": [("jaxrb pgs + time of impact", ball_drop, rb.ContactSettings())],
+    }
+    results = {}
+    for scene, runs in cases.items():
+        results[scene] = {}
+        for engine, make, settings in runs:
+            print(f"running {scene} / {engine} ...", flush=True)
+            results[scene][engine] = run_jaxrb(scene, make, settings, seconds[scene], args.envs,
+                                               args.repeats, args.timing_steps, dtype)
+    if not args.no_peers:
+        peers = run_peers(args.peer_python, args.quick)
+        for key, value in peers.items():
+            scene = "box_stack" if "stack" in key else "ball_drop" if ("ball" in key or "drop" in key) else None
+            if scene is None or not isinstance(value, dict):
+                results.setdefault("peers", {})[key] = value if isinstance(value, dict) else {"note": str(value)}
+            elif any("/" in k for k in value):  # brax: one entry per pipeline, "pipeline/key"
+                shared = {k: v for k, v in value.items() if "/" not in k}
+                for pipeline in sorted({k.split("/")[0] for k in value if "/" in k}):
+                    own = {k.split("/", 1)[1]: v for k, v in value.items() if k.startswith(pipeline + "/")}
+                    results[scene][f"{key.split('_')[0]} {pipeline}"] = {**shared, **own}
+            else:
+                results[scene][key.split("_")[0]] = value
+    print_table(results)
+    record = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "jax": jax.__version__,
+              "jaxrb": rb.__version__, "machine": platform.processor() or platform.machine(),
+              "backend": jax.default_backend(), "dtype": str(jnp.dtype(dtype)), "envs": args.envs,
+              "command": " ".join(["python", "benchmarks/contacts.py", *(argv or sys.argv[1:])]),
+              "results": results}
+    (out / "contacts.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
+    plot({k: v for k, v in results.items() if k != "peers"}, out / "contacts.png")
+    print(f"\nwrote {out / 'contacts.json'} and {out / 'contacts.png'}")
+    return record
+
+
+if __name__ == "__main__":
+    main()
