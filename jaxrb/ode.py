@@ -24,6 +24,8 @@ gradients flow through the solve (discretise-then-optimise,
 
 from __future__ import annotations
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
@@ -374,3 +376,92 @@ def solve(
     interpolation = sol.interpolation if dense else None
     return Solution(final=final, trajectory=trajectory, ts=ts, stats=sol.stats, result=sol.result,
                     interpolation=interpolation)
+
+
+class ImpactSolution(eqx.Module):
+    """The result of :func:`solve_with_impacts`.
+
+    Attributes:
+        final: the :class:`jaxrb.State` at ``t1`` (or at the last impact, if
+            ``max_impacts`` impacts happen before ``t1``).
+        impact_times: ``(max_impacts,)`` s, the located impacts (``inf`` after the last).
+        after_impact: a :class:`jaxrb.State` with a leading ``(max_impacts,)`` axis: the
+            state just after each impact (rows past ``num_impacts`` repeat the last state).
+        num_impacts: ``()`` int, how many impacts were located before ``t1``.
+    """
+
+    final: State
+    impact_times: Array
+    after_impact: State
+    num_impacts: Array
+
+
+def solve_with_impacts(
+    scene: Scene,
+    params: Params,
+    state: State,
+    t1,
+    *,
+    max_impacts: int = 16,
+    solver=None,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    max_steps: int = 4096,
+    contact=None,
+) -> ImpactSolution:
+    """Adaptive solve between impacts, with each impact located by a diffrax ``Event``.
+
+    The event is the smallest signed distance of the scene's contact pairs crossing zero
+    downwards; diffrax locates it with an optimistix Newton root finder to the solver's
+    tolerance. At each event the impact law of :func:`jaxrb.contact.resolve_impacts` is
+    applied (Newton's restitution with the seed's impulse, friction bounded by ``mu j``),
+    and the solve restarts, up to ``max_impacts`` times (a static ``lax.scan``). Resting
+    contact is not modelled on this path: use :func:`jaxrb.make_step` for that.
+    """
+    import optimistix as optx
+
+    from .contact import ContactSettings
+    from .contact._step import _Ctx, _impact, _pair_gaps, layout_of
+
+    check_inputs(scene, params, state, "rb.ode.solve_with_impacts")
+    if not scene.contact_pairs:
+        raise ValueError("solve_with_impacts needs a scene with contact pairs (Scene(..., contacts=...)).")
+    if isinstance(max_impacts, bool) or not isinstance(max_impacts, int) or max_impacts < 1:
+        raise ValueError(f"max_impacts must be a positive integer, got {max_impacts!r}.")
+    settings = contact if contact is not None else ContactSettings()
+    # A margin beyond any distance in the scene: every slot's gap is its true distance.
+    ctx = _Ctx(scene, layout_of(scene), None, dataclasses.replace(settings, margin=1e6), 1.0)
+    dtype = state.position.dtype
+    t1 = jnp.asarray(t1, dtype)
+    solver = diffrax.Tsit5() if solver is None else solver
+    controller = default_controller(solver, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype))
+
+    def distance(t, y, args, **kwargs):
+        return jnp.min(_pair_gaps(ctx, y.to_state(t)))
+
+    event = diffrax.Event(distance, root_finder=optx.Newton(rtol=rtol, atol=atol), direction=False)
+    term = diffrax.ODETerm(VectorField(scene))
+
+    def segment(carry, _):
+        current, count = carry
+
+        def advance(current):
+            sol = diffrax.diffeqsolve(term, solver, t0=current.time, t1=t1, dt0=None,
+                                      y0=OdeState.from_state(current), args=params,
+                                      saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller,
+                                      event=event, max_steps=max_steps)
+            t_end = sol.ts[-1]
+            after = jax.tree.map(lambda x: x[-1], sol.ys).to_state(t_end)
+            hit = jnp.asarray(sol.event_mask)
+            after = jax.lax.cond(hit, lambda s: _impact(ctx, params, s), lambda s: s, after)
+            return after, hit
+
+        running = current.time < t1
+        after, hit = jax.lax.cond(running, advance, lambda s: (s, jnp.zeros((), bool)), current)
+        time = jnp.where(hit, after.time, jnp.inf)
+        return (after, count + hit.astype(jnp.int32)), (time, after)
+
+    start = dataclasses.replace(state, rotation=None, contact_impulse=None)
+    (final, count), (times, states) = jax.lax.scan(
+        segment, (start, jnp.zeros((), jnp.int32)), None, length=max_impacts)
+    return ImpactSolution(final=final, impact_times=times, after_impact=states, num_impacts=count)
