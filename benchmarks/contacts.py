@@ -9,9 +9,10 @@ What it measures
       h = 1 ms, 3 s. Accuracy: the relative error of the first three apex heights
       against ``e^(2n)`` m (apex from energy, ``z + vz^2 / 2g``, where ``vz`` turns).
     For each: compile time (``jax.jit(...).lower().compile()``, tracing included),
-    steps per second with one environment (a plain ``rollout``), and environment-steps
-    per second with ``--envs`` environments (``jax.vmap``), best of ``--repeats`` timed
-    calls after a warm-up, each ended by ``block_until_ready``.
+    steps per second with one environment (a plain ``rollout`` of ``--timing-steps``
+    steps, best of ``--repeats`` timed calls), and environment-steps per second with
+    ``--envs`` environments (``jax.vmap``, one timed call of ``--batch-steps`` steps),
+    each after a warm-up call and ended by ``block_until_ready``.
 
     Peers (``benchmarks/peers.py``) run in the same process when they import here, or in
     another interpreter given by ``--peer-python`` (e.g. a venv with ``pip install
@@ -90,7 +91,7 @@ def timed(fn, args, repeats):
     return best
 
 
-def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, dtype):
+def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, batch_steps, dtype):
     scene, params, state = make(dtype)
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3, contact=settings)
     state = step.prepare(state)
@@ -108,8 +109,11 @@ def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, dtype)
     compile_s = time.perf_counter() - t0
     one = timing_steps / timed(compiled, (params, state), repeats)
     batch = lambda t: jax.tree.map(lambda x: jnp.broadcast_to(x, (envs, *x.shape)), t)  # noqa: E731
-    vmapped = jax.jit(jax.vmap(short))
-    many = envs * timing_steps / timed(vmapped, (batch(params), batch(state)), max(1, repeats // 2))
+    def short_batch(p, s):
+        return rb.rollout(step, p, s, batch_steps, save_every=batch_steps)[0]
+
+    vmapped = jax.jit(jax.vmap(short_batch))
+    many = envs * batch_steps / timed(vmapped, (batch(params), batch(state)), 1)
     _, traj = jax.jit(full)(params, state)
     accuracy = stack_accuracy(state, traj) if name == "box_stack" else ball_accuracy(traj)
     finite = bool(np.all(np.isfinite(np.asarray(traj.position))))
@@ -179,7 +183,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--envs", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--timing-steps", type=int, default=200)
+    p.add_argument("--timing-steps", type=int, default=200, help="steps per timed call, one environment")
+    p.add_argument("--batch-steps", type=int, default=20, help="steps per timed call, --envs environments")
     p.add_argument("--x64", action="store_true")
     p.add_argument("--peer-python", default=None, help="interpreter with mujoco/mujoco-mjx/brax installed")
     p.add_argument("--no-peers", action="store_true")
@@ -190,7 +195,7 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     dtype = jnp.float64 if args.x64 else jnp.float32
     if args.quick:
-        args.envs, args.repeats, args.timing_steps = 4, 1, 5
+        args.envs, args.repeats, args.timing_steps, args.batch_steps = 4, 1, 5, 5
         args.out = args.out or Path(tempfile.mkdtemp(prefix="jaxrb_contacts_"))
     out = args.out or DEFAULT_OUT
     out.mkdir(parents=True, exist_ok=True)
@@ -206,7 +211,7 @@ def main(argv=None):
         for engine, make, settings in runs:
             print(f"running {scene} / {engine} ...", flush=True)
             results[scene][engine] = run_jaxrb(scene, make, settings, seconds[scene], args.envs,
-                                               args.repeats, args.timing_steps, dtype)
+                                               args.repeats, args.timing_steps, args.batch_steps, dtype)
     if not args.no_peers:
         peers = run_peers(args.peer_python, args.quick)
         for key, value in peers.items():

@@ -270,3 +270,108 @@ def test_notebook_02_executes(tmp_path):
     assert cheapest is not None, "no run reached the tolerance"
     assert cheapest.group(1) in names
     assert float(cheapest.group(2)) in (0.02, 0.01, 0.005)
+
+
+# ----------------------------------------------------------------------------- contacts
+
+
+def _run_example(name: str, argv: list[str]):
+    """Import examples/<name>.py from its path and call its ``main(argv)``."""
+    spec = importlib.util.spec_from_file_location(f"{name}_example", ROOT / "examples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+        return module.main(argv)
+    finally:
+        sys.modules.pop(spec.name, None)
+
+
+def test_contacts_bounce_example_apexes_follow_e_to_the_2n(tmp_path, capsys):
+    result = _run_example("contacts_bounce", ["--quick", "--out", str(tmp_path)])
+    text = capsys.readouterr().out
+    theory = 0.8 ** (2 * np.arange(1, 5))
+    np.testing.assert_allclose(result["theory"], theory, rtol=1e-15)
+    # The time of impact makes the apexes independent of dt: measured to 7e-16 m at both.
+    for name in ("dt=0.01", "dt=1/60"):
+        assert len(result[name]) >= 4, name
+        np.testing.assert_allclose(result[name][:4], theory, rtol=0, atol=1e-6, err_msg=name)
+    assert re.search(r"^ 1\s+0\.640000\s+0\.640000\s+0\.640000$", text, flags=re.M)
+    assert "dt=0.01 no TOI" not in result  # the full run only
+    assert (tmp_path / "contacts_bounce.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_contacts_friction_example_matches_closed_forms(capsys):
+    result = _run_example("contacts_friction", ["--quick"])
+    measured, theory = result["measured"], result["theory"]
+    assert theory["stop_distance"] == pytest.approx(25 / (2 * 0.5 * 9.81), rel=1e-12)
+    assert theory["accel_30"] == pytest.approx(0.6571454, abs=1e-7)
+    # Measured at dt = 10 ms: every quantity within 1.1e-6 of its closed form.
+    for key in ("stop_time", "stop_distance", "roll_time", "roll_speed", "accel_30"):
+        assert measured[key] == pytest.approx(theory[key], abs=1e-4), key
+    # Below the friction angle (25 deg < atan 0.5 = 26.6 deg) the box stays: it moved 1.1e-6 m.
+    assert abs(measured["accel_25"]) < 1e-4
+    assert abs(measured["slide_25"]) < 1e-4
+    assert measured["slide_30"] == pytest.approx(0.5 * theory["accel_30"] * 1.5**2, rel=1e-3)  # --quick: 1.5 s
+    text = capsys.readouterr().out
+    assert re.search(r"^stop_distance\s+2\.5484\d\d\s+2\.548420$", text, flags=re.M)
+
+
+@pytest.mark.slow
+def test_contacts_stack_example_holds_the_stack_and_swings_the_cradle(capsys):
+    result = _run_example("contacts_stack", ["--quick"])
+    # Exact normal solve: measured 1.6e-12 m of sink and 2.4e-5 m sideways (5 boxes, 0.5 s at 10 ms).
+    sink, sideways, _ = result["exact"]
+    assert sink < 1e-6 and sideways < 1e-3
+    # PGS settles lower (measured 9.4e-3 m at this step); reported, bounded only loosely.
+    assert 0.0 <= result["pgs"][0] < 0.05
+    for moving in (1, 2, 3):  # k balls in, k balls out, at 1 m/s
+        expected = np.r_[np.zeros(5 - moving), np.ones(moving)]
+        np.testing.assert_allclose(result[f"cradle_{moving}"], expected, atol=1e-9, err_msg=str(moving))
+    text = capsys.readouterr().out
+    assert re.search(r"^1 in:\s+0\.000\s+0\.000\s+0\.000\s+0\.000\s+1\.000 ", text, flags=re.M)
+
+
+@pytest.mark.slow
+def test_notebook_03_contacts_executes(tmp_path):
+    """notebooks/03_contacts.py runs, and what it prints agrees with the closed forms."""
+    jupytext = pytest.importorskip("jupytext")
+    nbclient = pytest.importorskip("nbclient")
+    nb = jupytext.read(ROOT / "notebooks" / "03_contacts.py")
+    client = nbclient.NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    )
+    client.execute()  # raises CellExecutionError, with the traceback, if any cell fails
+    text = _notebook_text(nb)
+
+    # Bouncing ball at dt = 10 ms: apexes e^(2n) to round-off with the time of impact (measured
+    # 7e-16 m over 8 bounces); without it, too high by O(dt) (measured 6.9e-2 m).
+    first = re.search(r"^ 1\s+(\S+)\s+(\S+)\s+(\S+)$", text, flags=re.M)
+    assert float(first.group(1)) == pytest.approx(0.64, abs=1e-12)
+    assert float(first.group(2)) == pytest.approx(0.64, abs=1e-3)
+    assert float(first.group(3)) > 0.64 + 1e-3
+    with_toi = float(re.search(r"time_of_impact=True: max .* = (\S+) m", text).group(1))
+    assert with_toi < 1e-6
+
+    # Sliding box, rolling ball and the 30 deg incline: measured within 1.1e-6 of the closed forms.
+    pairs = re.findall(r"([\d.]+) (?:s|m|m/s|m/s\^2) \(closed form (?:5 v0 / 7 = )?([\d.]+)", text)
+    assert len(pairs) == 5, pairs
+    for measured, closed in pairs:
+        assert float(measured) == pytest.approx(float(closed), abs=1e-4)
+    # The slope sweep by tilted gravity (measured 1.1e-7 and 5.4e-14 m/s^2).
+    box, ball = map(float, re.search(r"box (\S+) m/s\^2, ball (\S+) m/s\^2", text).groups())
+    assert box < 1e-4 and ball < 1e-4
+
+    # Newton's cradle, e = 1: k in, k out; momentum and energy kept.
+    for moving in (1, 2, 3):
+        line = re.search(rf"^e = 1\.0, {moving} in:  after = \[([^\]]*)\]  momentum (\S+)  energy (\S+) J$",
+                         text, flags=re.M)
+        after = np.array([float(v) for v in line.group(1).split(",")])
+        np.testing.assert_allclose(after, np.r_[np.zeros(5 - moving), np.ones(moving)], atol=1e-4)
+        assert float(line.group(2)) == pytest.approx(moving, abs=1e-6)
+        assert float(line.group(3)) == pytest.approx(moving / 2, abs=1e-6)
+
+    # Heavy ball on a light one: the exact solve holds it (measured 9e-12 m); PGS is reported.
+    exact = float(re.search(r"^exact: the heavy ball sinks up to (\S+) m", text, flags=re.M).group(1))
+    assert exact < 1e-6
+    assert re.search(r"^pgs  : the heavy ball sinks up to \S+ m", text, flags=re.M)

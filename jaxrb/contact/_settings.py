@@ -33,6 +33,9 @@ class ContactSettings:
             small contact sets it is meant for, e.g. a heavy body on a light one, where PGS
             contracts only by ``M/(M+m)`` per sweep) and friction by PGS sweeps between.
         iterations: PGS sweeps per solve (``"exact"``: outer normal/friction alternations).
+        impact_iterations: sweeps of sequential collisions per impact; momentum crosses
+            one contact per sweep in the worst slot order (a row of ``n`` touching balls
+            needs ``n - 1``).
         newton_iterations: ``"exact"`` only: Newton steps per normal solve.
         warm_start: start each step's solve from the previous step's impulses (kept in
             ``State.contact_impulse``).
@@ -54,6 +57,7 @@ class ContactSettings:
 
     solver: str = "pgs"
     iterations: int = 20
+    impact_iterations: int = 8
     newton_iterations: int = 8
     warm_start: bool = True
     restitution_threshold: float = 0.25
@@ -67,7 +71,7 @@ class ContactSettings:
     def __post_init__(self):
         if self.solver not in ("pgs", "exact"):
             raise ValueError(f"ContactSettings.solver must be 'pgs' or 'exact', got {self.solver!r}.")
-        for name in ("iterations", "newton_iterations", "toi_iterations", "position_iterations"):
+        for name in ("iterations", "impact_iterations", "newton_iterations", "toi_iterations", "position_iterations"):
             _check(name, getattr(self, name), integer=True, positive=True)
         for name in ("restitution_threshold", "penetration_slop"):
             _check(name, getattr(self, name))
