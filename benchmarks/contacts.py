@@ -132,8 +132,8 @@ def run_peers(peer_python, quick):
             return peers.run_all(small=quick)
         except Exception as err:  # noqa: BLE001 - report, never fail the jaxrb benchmark
             return {"error": repr(err)}
-    code = ("import json, sys; sys.path.insert(0, %r); import peers; print('PEERS_JSON' + json.dumps(peers.run_all(small=%r)))"
-            % (str(HERE), quick))
+    code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
+            f"print('PEERS_JSON' + json.dumps(peers.run_all(small={quick!r})))")
     out = subprocess.run([peer_python, "-c", code], capture_output=True, text=True, timeout=3600)
     for line in out.stdout.splitlines():
         if line.startswith("PEERS_JSON"):

@@ -146,8 +146,8 @@ def _notebook_text(nb) -> str:
     return "".join(chunks)
 
 
-@pytest.mark.parametrize("name", ["01_free_body.py"])
-def test_notebook_executes(name, tmp_path):
+def _execute_notebook(name: str, tmp_path) -> str:
+    """Run notebooks/<name> (jupytext source) in a fresh kernel; return what it printed."""
     jupytext = pytest.importorskip("jupytext")
     nbclient = pytest.importorskip("nbclient")
     nb = jupytext.read(ROOT / "notebooks" / name)
@@ -155,7 +155,12 @@ def test_notebook_executes(name, tmp_path):
         nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
     )
     client.execute()  # raises CellExecutionError, with the traceback, if any cell fails
-    text = _notebook_text(nb)
+    return _notebook_text(nb)
+
+
+@pytest.mark.parametrize("name", ["01_free_body.py"])
+def test_notebook_executes(name, tmp_path):
+    text = _execute_notebook(name, tmp_path)
 
     # Convergence orders fitted in the notebook (measured 1.15, 1.00, 4.03).
     orders = dict(re.findall(r"^(\w+)\s+errors .* fitted order ([\d.]+)$", text, flags=re.M))
@@ -177,14 +182,7 @@ def test_notebook_executes(name, tmp_path):
 @pytest.mark.slow
 def test_notebook_02_executes(tmp_path):
     """notebooks/02_speed_vs_accuracy.py runs, and the numbers it prints obey the physics."""
-    jupytext = pytest.importorskip("jupytext")
-    nbclient = pytest.importorskip("nbclient")
-    nb = jupytext.read(ROOT / "notebooks" / "02_speed_vs_accuracy.py")
-    client = nbclient.NotebookClient(
-        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
-    )
-    client.execute()  # raises CellExecutionError, with the traceback, if any cell fails
-    text = _notebook_text(nb)
+    text = _execute_notebook("02_speed_vs_accuracy.py", tmp_path)
     names = {"ExplicitEuler", "SemiImplicitEuler", "ImplicitGyroscopic", "ImplicitMidpoint",
              "SymplecticSplitting", "RK4", "RKMK4"}
 
@@ -335,14 +333,7 @@ def test_contacts_stack_example_holds_the_stack_and_swings_the_cradle(capsys):
 @pytest.mark.slow
 def test_notebook_03_contacts_executes(tmp_path):
     """notebooks/03_contacts.py runs, and what it prints agrees with the closed forms."""
-    jupytext = pytest.importorskip("jupytext")
-    nbclient = pytest.importorskip("nbclient")
-    nb = jupytext.read(ROOT / "notebooks" / "03_contacts.py")
-    client = nbclient.NotebookClient(
-        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
-    )
-    client.execute()  # raises CellExecutionError, with the traceback, if any cell fails
-    text = _notebook_text(nb)
+    text = _execute_notebook("03_contacts.py", tmp_path)
 
     # Bouncing ball at dt = 10 ms: apexes e^(2n) to round-off with the time of impact (measured
     # 7e-16 m over 8 bounces); without it, too high by O(dt) (measured 6.9e-2 m).
