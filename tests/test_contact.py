@@ -464,3 +464,28 @@ def test_diffrax_event_path_locates_impacts_to_solver_tolerance():
     with pytest.raises(ValueError, match="needs a scene with contact pairs"):
         rb.ode.solve_with_impacts(rb.Scene([rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)]), rb.Scene(
             [rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)]).params(), state, 1.0)
+
+
+def test_friction_scenes_in_float32():
+    """Sliding box, 25/30 degree inclines and rolling sphere, float32: the same bounds as float64."""
+    scene = rb.Scene([rb.Body("box", shape=BOX, mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(friction=0.5, dtype=jnp.float32)
+    state = scene.state(params, position=(0, 0, 0.1), velocity=(5.0, 0, 0))
+    final, _ = rb.rollout(rb.make_step(scene, SPLIT, 1e-3), params, state, 1500, save_every=500)
+    assert abs(float(final.position[0, 0]) - 25 / (2 * 0.5 * G)) <= 5e-3
+    for deg in (25.0, 30.0):
+        scene, params, state, downhill = incline(deg, 0.5)
+        params = scene.params(friction=0.5, dtype=jnp.float32)
+        state = scene.state(params, position=np.asarray(state.position), orientation=np.asarray(state.orientation))
+        final, _ = rb.rollout(rb.make_step(scene, SPLIT, 1e-3), params, state, 2000, save_every=500)
+        moved = np.asarray(final.position[0], float) - np.asarray(state.position[0], float)
+        if deg == 25.0:
+            assert np.linalg.norm(moved) <= 1e-4
+        else:
+            expected = G * (np.sin(np.radians(30)) - 0.5 * np.cos(np.radians(30)))
+            np.testing.assert_allclose(2 * (moved @ downhill) / 2.0**2, expected, rtol=1e-2)
+    ball = ball_scene()
+    params = ball.params(friction=0.2, dtype=jnp.float32)
+    state = ball.state(params, position=(0, 0, 0.1), velocity=(2.0, 0, 0))
+    final, _ = rb.rollout(rb.make_step(ball, SPLIT, 1e-3), params, state, 600, save_every=600)
+    np.testing.assert_allclose(float(final.velocity[0, 0]), 5 * 2.0 / 7, rtol=1e-2)
