@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import spatial
-from ._solver import Bodies, Frames, apply_impulses, pad_slots, sweeps
+from ._solver import Bodies, Frames, apply_impulses, normal_velocities, pad_slots, sweeps
 
 __all__ = ["normal_delassus", "solve_exact"]
 
@@ -45,13 +45,6 @@ def normal_delassus(bodies: Bodies, f: Frames) -> jax.Array:
     lin_m = lin * bodies.inv_mass[None, :, None]
     ang_m = jnp.einsum("rij,crj->cri", bodies.inv_inertia, ang)
     return jnp.einsum("cri,dri->cd", lin_m, lin) + jnp.einsum("cri,dri->cd", ang_m, ang)
-
-
-def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
-    a, b = f.body_a, f.body_b
-    u = (bodies.velocity[a] + spatial.cross(bodies.angular_velocity[a], f.r_a)
-         - bodies.velocity[b] - spatial.cross(bodies.angular_velocity[b], f.r_b))
-    return spatial.dot(f.basis[:, 0], u)
 
 
 def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
@@ -84,7 +77,7 @@ def solve_exact(bodies: Bodies, f: Frames, colours, target, mu, active, lam0, it
     def stage(carry, _):
         bodies, lam = carry
         bodies, lam = sweeps(bodies, f, colours, target, mu, active, lam, 1)
-        new_n = _newton_normals(a_mat, _normal_velocity(bodies, f), lam[:, 0], target, active, newton_iterations)
+        new_n = _newton_normals(a_mat, normal_velocities(bodies, f), lam[:, 0], target, active, newton_iterations)
         d = new_n - lam[:, 0]
         bodies = apply_impulses(bodies, f, jnp.stack([d, jnp.zeros_like(d), jnp.zeros_like(d)], -1))
         return (bodies, lam.at[:, 0].set(new_n)), None

@@ -38,7 +38,7 @@ from jaxtyping import Array, Float
 from .. import spatial
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
-           "relative_velocity", "collisions"]
+           "relative_velocity", "normal_velocities", "collisions"]
 
 
 class Bodies(eqx.Module):
@@ -123,6 +123,11 @@ def relative_velocity(bodies: Bodies, f: Frames, idx):
     ua = bodies.velocity[a] + spatial.cross(bodies.angular_velocity[a], f.r_a[idx])
     ub = bodies.velocity[b] + spatial.cross(bodies.angular_velocity[b], f.r_b[idx])
     return spatial.matvec(f.basis[idx], ua - ub)  # (..., 3) in (n, t1, t2)
+
+
+def normal_velocities(bodies: Bodies, f: Frames) -> Array:
+    """``u_n`` (m/s) of every slot, padding included: ``(C + 1,)``."""
+    return relative_velocity(bodies, f, jnp.arange(f.body_a.shape[0]))[:, 0]
 
 
 def _apply(bodies: Bodies, f: Frames, idx, local_impulse) -> Bodies:

@@ -45,7 +45,7 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import Bodies, Frames, collisions, frames, solve
+from ._solver import Bodies, Frames, collisions, frames, normal_velocities, solve
 
 __all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
 
@@ -83,10 +83,7 @@ def _solver_bodies(params: Params, state: State, velocity, angular_momentum) -> 
 
 def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
     """``u_n`` of every real slot ``(C,)``, m/s."""
-    a, b = f.body_a[:-1], f.body_b[:-1]
-    u = (bodies.velocity[a] + spatial.cross(bodies.angular_velocity[a], f.r_a[:-1])
-         - bodies.velocity[b] - spatial.cross(bodies.angular_velocity[b], f.r_b[:-1]))
-    return spatial.dot(f.basis[:-1, 0], u)
+    return normal_velocities(bodies, f)[:-1]
 
 
 def _slot_coefficients(layout: Layout, params: Params):
