@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import platform
 import subprocess
 import sys
 import tempfile
@@ -45,6 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrb as rb
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
+from _machine import cpu_model  # noqa: E402
 
 G = 9.81
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
@@ -229,7 +231,7 @@ def main(argv=None):
                 results[scene][key.split("_")[0]] = value
     print_table(results)
     record = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "jax": jax.__version__,
-              "jaxrb": rb.__version__, "machine": platform.processor() or platform.machine(),
+              "jaxrb": rb.__version__, "cpu_model": cpu_model(),
               "backend": jax.default_backend(), "dtype": str(jnp.dtype(dtype)), "envs": args.envs,
               "command": " ".join(["python", "benchmarks/contacts.py", *(argv or sys.argv[1:])]),
               "results": results}

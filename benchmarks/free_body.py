@@ -51,6 +51,9 @@ import numpy as np
 
 import jaxrb as rb
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
+from _machine import cpu_model  # noqa: E402
+
 DT = 1e-3  # s
 INITIAL_VELOCITY = (1.0, 0.0, 2.0)  # m/s, world frame
 INITIAL_BODY_ANGULAR_VELOCITY = (0.3, 2.0, -1.0)  # rad/s, body frame
@@ -223,16 +226,6 @@ def check_bare_matches_jaxrb(jaxrb_final, bare_final, dtype) -> float:
 
 
 # --------------------------------------------------------------------------- output
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def print_table(results, envs_list):

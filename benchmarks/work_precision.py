@@ -90,6 +90,9 @@ import numpy as np
 
 import jaxrb as rb
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
+from _machine import cpu_model  # noqa: E402
+
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 FIXED = [n for n in rb.integrators.__all__ if n != "Integrator"]
 ADAPTIVE = {"Tsit5": (diffrax.Tsit5, 5), "Dopri5": (diffrax.Dopri5, 5), "Dopri8": (diffrax.Dopri8, 8)}
@@ -613,16 +616,6 @@ def plots(out, record, rows_by_problem, long, stability):
         ax.invert_yaxis()
         save(fig, "work_precision_stability")
     return paths
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def clean(value):
