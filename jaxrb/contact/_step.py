@@ -241,8 +241,13 @@ def _free_pose(params: Params, state: State, acceleration, omega, t) -> State:
     return dataclasses.replace(state, position=position, orientation=orientation, rotation=None)
 
 
-def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate) -> jax.Array:
-    """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches."""
+def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate, start_gap) -> jax.Array:
+    """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches.
+
+    ``start_gap`` is the candidate pairs' smallest gap at ``tau = 0`` (already known). The
+    narrow phase is traced twice only (the root search's body and the final Newton step),
+    which keeps the compile time down: the first pass of the search evaluates ``tau = 1``.
+    """
     force, _ = wrench(ctx.scene, params, state)
     acceleration = linear_acceleration(params, force)
     omega = angular_velocity(params, state)
@@ -253,30 +258,33 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate) -> jax.A
         return jnp.min(jnp.where(candidate, gaps, big))
 
     dtype = state.position.dtype
-    d0, d1 = distance(jnp.zeros((), dtype)), distance(jnp.ones((), dtype))
     frozen = jax.lax.stop_gradient
 
-    def illinois(carry, _):
+    def illinois(carry, first):
         a, fa, b, fb, side = carry
         c = (a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0)
-        c = jnp.clip(c, a, b)
+        c = jnp.where(first, 1.0, jnp.clip(c, a, b))
         fc = frozen(distance(c))
-        left = fc * fa > 0  # root in [c, b]
+        left = (fc * fa > 0) & ~first  # root in [c, b]
         a2, fa2 = jnp.where(left, c, a), jnp.where(left, fc, fa)
         b2, fb2 = jnp.where(left, b, c), jnp.where(left, fb, fc)
         # Illinois: halve the stale end's value when the same side moves twice.
         fb2 = jnp.where(left & (side > 0), 0.5 * fb2, fb2)
-        fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
-        return (a2, fa2, b2, fb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
+        fa2 = jnp.where(~left & (side < 0) & ~first, 0.5 * fa2, fa2)
+        side = jnp.where(first, 0, jnp.where(left, 1, -1)).astype(jnp.int32)
+        return (a2, fa2, b2, fb2, side), fc
 
-    start = (jnp.zeros_like(d0), frozen(d0), jnp.ones_like(d1), frozen(d1), jnp.zeros((), jnp.int32))
-    (a, fa, b, fb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
+    zero = jnp.zeros((), dtype)
+    start = (zero, frozen(start_gap).astype(dtype), jnp.ones((), dtype), zero, jnp.zeros((), jnp.int32))
+    first = jnp.arange(ctx.settings.toi_iterations + 1) == 0
+    (a, fa, b, fb, _), values = jax.lax.scan(illinois, start, first)
+    end_gap = values[0]
     root = frozen(jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b))
     # One Newton step at the root: its value is the root, its derivative the implicit one.
     value, slope = jax.jvp(distance, (root,), (jnp.ones_like(root),))
     slope = jnp.where(slope < 0, slope, -1.0)
     tau = root - value / slope
-    return jnp.where(d1 < 0, jnp.clip(tau, 0.0, 1.0), 1.0)
+    return jnp.where(end_gap < 0, jnp.clip(tau, 0.0, 1.0), 1.0)
 
 
 def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
@@ -297,18 +305,22 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     bodies, position = _solver_bodies(params, state, velocity, momentum)
     f = frames(bodies, ctx.layout.body_a, ctx.layout.body_b, contact.point, contact.normal, position)
     pair = np.asarray(ctx.layout.pair, dtype=np.int32)
-    apart = jax.ops.segment_min(jnp.where(contact.active, contact.gap, ctx.margin), pair,
-                                num_segments=scene.num_contact_pairs) > settings.penetration_slop
+    pair_gap = jax.ops.segment_min(jnp.where(contact.active, contact.gap, ctx.margin), pair,
+                                   num_segments=scene.num_contact_pairs)
+    apart = pair_gap > settings.penetration_slop
     closing = contact.active & (contact.gap + dt * _normal_velocity(bodies, f) < 0)
     candidate = apart & (jax.ops.segment_max(closing.astype(jnp.int32), pair,
                                              num_segments=scene.num_contact_pairs) > 0)
 
-    # Split the step at the impact: [0, tau h], the impact, [tau h, h]. One scan over the
-    # two parts keeps one copy of the sub-step in the compiled program; a part of zero
-    # length is skipped (at run time, unless vmapped).
+    # Split the step at the impact: [0, tau h], then [tau h, h], which starts with the
+    # impact (the sub-step's impact pass: the pair touches there and approaches). One scan
+    # over the two parts keeps one copy of the sub-step in the compiled program; a part of
+    # zero length is skipped (at run time, unless vmapped). At tau = 1 the impact is the
+    # next step's, at its start.
     any_hit = jnp.any(candidate)
     dtype = state.position.dtype
-    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate),
+    start_gap = jnp.min(jnp.where(candidate, pair_gap, ctx.margin))
+    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate, start_gap),
                        lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
@@ -321,7 +333,6 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
             lambda s: _regular(ctx, params, s, h, lam, derived, bounce),
             lambda s: dataclasses.replace(s, contact_impulse=lam),
             state)
-        state = jax.lax.cond((index == 0) & any_hit, lambda s: _impact(ctx, params, s), lambda s: s, state)
         return (state, state.contact_impulse), None
 
     start = dataclasses.replace(state, contact_impulse=lam0)
