@@ -9,6 +9,7 @@ from . import dynamics as dynamics
 from . import ensemble as ensemble
 from . import exact as exact
 from . import forces as forces
+from . import identify as identify
 from . import inertia as inertia
 from . import integrators as integrators
 from . import kinematics as kinematics

@@ -1,0 +1,332 @@
+"""Which parameters a fit may change, and unconstrained coordinates that keep them physical.
+
+An optimiser moves freely in ``R^n``; the physical parameters it stands for must stay
+physical at every iterate, not only at the end. Each field of :class:`jaxrb.Params` has
+its own smooth, invertible map from unconstrained coordinates ``z``:
+
+============================  ======================================  ==================
+field                         physical value from ``z``               keeps
+============================  ======================================  ==================
+``mass``, ``*_damping``       ``exp(z)``                              ``> 0``
+``restitution``               ``sigmoid(z)``                          ``(0, 1)``
+``friction``                  ``mu_max sigmoid(z)``                   ``(0, mu_max)``
+``inertia`` (6 per body)      ``I = tr(S) E - S``, ``S = L L^T``,     SPD and the strict
+                              ``L`` lower triangular with             triangle inequality
+                              diagonal ``exp(z_0..2)``
+``gravity``, ``extra``        ``z``                                   (unconstrained)
+============================  ======================================  ==================
+
+The inertia map is the log-Cholesky parameterisation of the pseudo-inertia (Rucker and
+Wensing, 2022) about the centre of mass: ``S = int r r^T dm`` is the second moment of the
+mass distribution, ``I = tr(S) E - S``, and ``S`` positive definite is exactly the
+condition that ``I`` is positive definite *and* satisfies ``I_i + I_j > I_k`` (the
+principal moments are ``I_i = s_j + s_k``). So every ``z`` in ``R^6`` is a body that could
+exist, and every such body has exactly one ``z``.
+
+Entries that are not free keep their value from the template ``Params``; free entries
+are chosen per field: all of it, a list of body names (per-body fields) or contact pairs
+(per-pair fields), or a boolean mask.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import Scene
+from ..state import Params
+
+__all__ = ["FreeParameters", "inertia_from_unconstrained", "inertia_to_unconstrained", "FIELDS"]
+
+_PER_BODY = ("mass", "inertia", "linear_damping", "angular_damping")
+_PER_PAIR = ("restitution", "friction")
+FIELDS = (*_PER_BODY, *_PER_PAIR, "gravity", "extra")
+_INERTIA_ENTRIES = ("xx", "yy", "zz", "xy", "xz", "yz")
+_LOWER = ((1, 0), (2, 0), (2, 1))
+
+
+# ------------------------------------------------------------------- inertia map
+
+
+def inertia_from_unconstrained(z: jax.Array) -> jax.Array:
+    """``(..., 6)`` log-Cholesky coordinates -> ``(..., 3, 3)`` inertia (kg m^2), always physical."""
+    diag = jnp.exp(z[..., :3])
+    zero = jnp.zeros_like(z[..., 0])
+    chol = jnp.stack([
+        jnp.stack([diag[..., 0], zero, zero], -1),
+        jnp.stack([z[..., 3], diag[..., 1], zero], -1),
+        jnp.stack([z[..., 4], z[..., 5], diag[..., 2]], -1),
+    ], -2)
+    second_moment = chol @ jnp.swapaxes(chol, -1, -2)
+    trace = jnp.trace(second_moment, axis1=-2, axis2=-1)
+    eye = jnp.eye(3, dtype=z.dtype).reshape((1,) * (z.ndim - 1) + (3, 3))
+    return trace[..., None, None] * eye - second_moment
+
+
+def inertia_to_unconstrained(inertia) -> np.ndarray:
+    """Inverse of :func:`inertia_from_unconstrained` (NumPy, concrete values).
+
+    Raises:
+        ValueError: if the inertia is not symmetric positive definite with the strict
+            triangle inequality (its second moment ``S`` is not positive definite).
+    """
+    inertia = np.asarray(inertia, dtype=float)
+    half_trace = 0.5 * np.trace(inertia, axis1=-2, axis2=-1)
+    second_moment = half_trace[..., None, None] * np.eye(3) - 0.5 * (inertia + np.swapaxes(inertia, -1, -2))
+    try:
+        chol = np.linalg.cholesky(second_moment)
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            "An initial inertia is not a physical body's: it must be symmetric positive definite "
+            "and satisfy the strict triangle inequality I1 + I2 > I3 (a flat plate or a thin rod is "
+            "its limit). Start the fit from a solid body's inertia, e.g. rb.mass_properties(...)."
+        ) from None
+    diag = np.diagonal(chol, axis1=-2, axis2=-1)
+    return np.concatenate([np.log(diag), np.stack([chol[..., i, j] for i, j in _LOWER], -1)], -1)
+
+
+# ------------------------------------------------------------------ free entries
+
+
+def _logit(p):
+    return np.log(p) - np.log1p(-p)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FreeParameters:
+    """The free entries of a :class:`jaxrb.Params`, and their unconstrained coordinates.
+
+    Args:
+        scene: the scene the parameters belong to (for names and shapes).
+        params: the template: the initial guess for free entries, the fixed value of the
+            others.
+        free: the field name, a sequence of field names, or a dict ``{field: which}`` with
+            ``which`` ``True`` (all entries), a list of body names (``mass``, ``inertia``,
+            ``*_damping``), a list of contact pairs ``("a", "b")`` or pair indices
+            (``restitution``, ``friction``), or a boolean mask of the field's leading axis.
+            ``gravity`` and ``extra`` are all-or-nothing.
+        friction_max: upper bound of a free friction coefficient (the scaled sigmoid's scale).
+
+    Attributes:
+        masks: ``{field: bool array}`` for the free fields (``None`` for ``extra``).
+        labels: one name per free scalar, in :meth:`to_vector` order, e.g. ``mass[ball]``,
+            ``inertia[box].xy``, ``restitution[ball-ground]``, ``gravity.z``.
+    """
+
+    scene: Scene
+    params: Params
+    free: object
+    friction_max: float = 2.0
+    masks: dict = dataclasses.field(init=False)
+    labels: tuple = dataclasses.field(init=False)
+
+    def __post_init__(self):
+        if not isinstance(self.params, Params):
+            raise ValueError(f"params must be an rb.Params (scene.params()), got {type(self.params).__name__}.")
+        if not self.friction_max > 0:
+            raise ValueError(f"friction_max must be positive, got {self.friction_max}.")
+        spec = self.free
+        if isinstance(spec, str):
+            spec = {spec: True}
+        elif not isinstance(spec, dict):
+            spec = dict.fromkeys(spec, True)
+        if not spec:
+            raise ValueError(f"Nothing is free: give at least one of {FIELDS} in free=.")
+        masks = {}
+        for field, which in spec.items():
+            if field not in FIELDS:
+                raise ValueError(f"Unknown parameter {field!r} in free=; choose from {FIELDS}.")
+            masks[field] = self._mask(field, which)
+            if masks[field] is not None and not masks[field].any():
+                raise ValueError(f"free[{field!r}] selects no entry; drop it or select some.")
+        object.__setattr__(self, "masks", masks)
+        self._check_inside()
+        object.__setattr__(self, "labels", tuple(self._labels()))
+
+    # -- building
+
+    def _mask(self, field, which):
+        scene = self.scene
+        if field == "extra":
+            if which is not True:
+                raise ValueError("free['extra'] must be True: the user pytree is fitted as a whole.")
+            if self.params.extra is None:
+                raise ValueError("free includes 'extra' but params.extra is None.")
+            return None
+        size = {"gravity": 3}.get(field, scene.num_contact_pairs if field in _PER_PAIR else scene.num_bodies)
+        if which is True:
+            return np.ones(size, bool)
+        if field == "gravity":
+            raise ValueError("free['gravity'] must be True (all three components).")
+        which = list(which) if not isinstance(which, np.ndarray) else which
+        if isinstance(which, np.ndarray) or (which and isinstance(which[0], (bool, np.bool_))):
+            mask = np.asarray(which, bool)
+            if mask.shape != (size,):
+                raise ValueError(f"free[{field!r}] mask has shape {mask.shape}; {field} needs ({size},).")
+            return mask
+        mask = np.zeros(size, bool)
+        for item in which:
+            mask[self._index(field, item)] = True
+        return mask
+
+    def _index(self, field, item) -> int:
+        scene = self.scene
+        if field in _PER_BODY:
+            return scene.index(item) if isinstance(item, str) else int(item)
+        pairs = list(scene.contact_pairs)
+        if isinstance(item, (int, np.integer)):
+            if not 0 <= item < len(pairs):
+                raise ValueError(f"free[{field!r}]: pair index {item} out of range; the scene has {len(pairs)} pairs.")
+            return int(item)
+        pair = tuple(item)
+        for candidate in (pair, pair[::-1]):
+            if candidate in pairs:
+                return pairs.index(candidate)
+        raise ValueError(f"free[{field!r}]: {pair} is not a contact pair of the scene; its pairs are {pairs}.")
+
+    def _check_inside(self):
+        """Free entries must start strictly inside their domain (a boundary has no ``z``)."""
+        p = self.params
+        checks = {
+            "mass": (p.mass, lambda x: x > 0, "positive"),
+            "linear_damping": (p.linear_damping, lambda x: x > 0, "positive (start from a small value, not 0)"),
+            "angular_damping": (p.angular_damping, lambda x: x > 0, "positive (start from a small value, not 0)"),
+            "restitution": (p.restitution, lambda x: (x > 0) & (x < 1), "strictly inside (0, 1), e.g. 0.5"),
+            "friction": (p.friction, lambda x: (x > 0) & (x < self.friction_max),
+                         f"strictly inside (0, friction_max={self.friction_max})"),
+        }
+        for field, (value, ok, what) in checks.items():
+            if field in self.masks:
+                value = np.asarray(value, float)
+                bad = self.masks[field] & ~ok(value)
+                if bad.any():
+                    raise ValueError(f"The initial {field} {value[bad]} must be {what} for a fit.")
+        if "inertia" in self.masks:
+            inertia_to_unconstrained(np.asarray(p.inertia, float)[self.masks["inertia"]])
+
+    def _labels(self):
+        names = self.scene.body_names
+        pairs = ["-".join(pair) for pair in self.scene.contact_pairs]
+        for field in FIELDS:
+            if field not in self.masks:
+                continue
+            mask = self.masks[field]
+            if field == "inertia":
+                yield from (f"inertia[{names[i]}].{e}" for i in np.flatnonzero(mask) for e in _INERTIA_ENTRIES)
+            elif field in _PER_BODY:
+                yield from (f"{field}[{names[i]}]" for i in np.flatnonzero(mask))
+            elif field in _PER_PAIR:
+                yield from (f"{field}[{pairs[i]}]" for i in np.flatnonzero(mask))
+            elif field == "gravity":
+                yield from ("gravity.x", "gravity.y", "gravity.z")
+            else:
+                leaves = jax.tree.leaves(self.params.extra)
+                yield from (f"extra[{k}][{j}]" for k, leaf in enumerate(leaves) for j in range(np.size(leaf)))
+
+    # -- unconstrained coordinates
+
+    def unconstrained(self, params: Params | None = None) -> dict:
+        """``z``: a dict ``{field: array}`` for the free fields (full leading axes), from ``params``.
+
+        Fixed entries of a free field get a harmless value; they never reach the output.
+        """
+        p = self.params if params is None else params
+        z = {}
+        for field, mask in self.masks.items():
+            if field == "extra":
+                z[field] = jax.tree.map(jnp.asarray, p.extra)
+                continue
+            value = np.asarray(getattr(p, field), float)
+            dtype = jnp.asarray(getattr(p, field)).dtype
+            if field == "inertia":
+                safe = np.where(mask[:, None, None], value, np.eye(3))
+                z[field] = jnp.asarray(inertia_to_unconstrained(safe), dtype)
+                continue
+            if field in ("mass", "linear_damping", "angular_damping"):
+                u = np.log(np.where(mask, value, 1.0))
+            elif field == "restitution":
+                u = _logit(np.where(mask, value, 0.5))
+            elif field == "friction":
+                u = _logit(np.where(mask, value, 0.5 * self.friction_max) / self.friction_max)
+            else:
+                u = value
+            z[field] = jnp.asarray(u, dtype)
+        return z
+
+    def physical(self, z: dict) -> Params:
+        """The :class:`jaxrb.Params` that ``z`` stands for (traceable; physical for every ``z``)."""
+        changes = {}
+        for field, mask in self.masks.items():
+            if field == "extra":
+                changes[field] = z[field]
+                continue
+            u = z[field]
+            if field == "inertia":
+                value = inertia_from_unconstrained(u)
+                changes[field] = jnp.where(mask[:, None, None], value, self.params.inertia)
+                continue
+            if field in ("mass", "linear_damping", "angular_damping"):
+                value = jnp.exp(u)
+            elif field == "restitution":
+                value = jax.nn.sigmoid(u)
+            elif field == "friction":
+                value = self.friction_max * jax.nn.sigmoid(u)
+            else:
+                value = u
+            changes[field] = jnp.where(mask, value, getattr(self.params, field))
+        return dataclasses.replace(self.params, **changes)
+
+    # -- the free physical values as one vector (for sensitivities and covariances)
+
+    def to_vector(self, params: Params) -> jax.Array:
+        """The free physical values ``(p,)``, in :attr:`labels` order (inertia: xx yy zz xy xz yz)."""
+        parts = []
+        for field in FIELDS:
+            if field not in self.masks:
+                continue
+            mask = self.masks[field]
+            if field == "extra":
+                parts += [jnp.ravel(leaf) for leaf in jax.tree.leaves(params.extra)]
+            elif field == "inertia":
+                i = params.inertia[np.flatnonzero(mask)]
+                parts.append(jnp.stack([i[:, 0, 0], i[:, 1, 1], i[:, 2, 2], i[:, 0, 1], i[:, 0, 2], i[:, 1, 2]],
+                                       -1).ravel())
+            else:
+                parts.append(jnp.ravel(getattr(params, field))[np.flatnonzero(mask)])
+        return jnp.concatenate(parts)
+
+    def from_vector(self, vector: jax.Array, params: Params | None = None) -> Params:
+        """Inverse of :meth:`to_vector`: ``params`` (default: the template) with the free values set.
+
+        Not constrained: it is for sensitivities around a physical point, not for optimising.
+        """
+        p = self.params if params is None else params
+        changes, start = {}, 0
+        for field in FIELDS:
+            if field not in self.masks:
+                continue
+            mask = self.masks[field]
+            if field == "extra":
+                leaves, treedef = jax.tree.flatten(p.extra)
+                new = []
+                for leaf in leaves:
+                    size = int(np.size(leaf))
+                    new.append(vector[start:start + size].reshape(np.shape(leaf)))
+                    start += size
+                changes[field] = jax.tree.unflatten(treedef, new)
+                continue
+            idx = np.flatnonzero(mask)
+            if field == "inertia":
+                e = vector[start:start + 6 * len(idx)].reshape(-1, 6)
+                start += 6 * len(idx)
+                mat = jnp.stack([jnp.stack([e[:, 0], e[:, 3], e[:, 4]], -1),
+                                 jnp.stack([e[:, 3], e[:, 1], e[:, 5]], -1),
+                                 jnp.stack([e[:, 4], e[:, 5], e[:, 2]], -1)], -2)
+                changes[field] = jnp.asarray(p.inertia).at[idx].set(mat)
+            else:
+                changes[field] = jnp.asarray(getattr(p, field)).at[idx].set(vector[start:start + len(idx)])
+                start += len(idx)
+        return dataclasses.replace(p, **changes)

@@ -1,0 +1,297 @@
+"""jaxrb.identify: parameterisations, fits from random guesses on noisy data, identifiability.
+
+Every scenario fits noisy synthetic measurements of a known truth, from an initial guess
+drawn at random (seeded), in float64. The truth data come from an independent or finer
+computation where one exists (the exact torque-free solution, a ten times finer step).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrb as rb
+from jaxrb.identify import FreeParameters, inertia_from_unconstrained, inertia_to_unconstrained
+
+SIE = rb.integrators.SemiImplicitEuler()  # the contact drift of a sphere or a box: exact here
+SPLIT = rb.integrators.SymplecticSplitting()
+
+
+def _physical(params: Params) -> bool:  # noqa: F821 - annotation only
+    inertia = np.asarray(params.inertia, float)
+    moments = np.linalg.eigvalsh(inertia)
+    triangle = np.all(moments[:, :2].sum(-1) >= moments[:, 2] * (1 - 1e-12))
+    e = np.asarray(params.restitution, float)
+    return bool(np.all(np.asarray(params.mass) > 0) and np.all(moments > 0) and triangle
+                and np.all((e >= 0) & (e <= 1)) and np.all(np.asarray(params.friction) >= 0))
+
+
+# --------------------------------------------------------------- parameterisation
+
+
+def test_every_unconstrained_point_is_a_physical_body():
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(rng.normal(scale=2.0, size=(2000, 6)))
+    inertia = np.asarray(inertia_from_unconstrained(z))
+    moments = np.linalg.eigvalsh(inertia)  # ascending; eigvalsh's error is ~eps * largest
+    assert np.all(moments[:, 0] > 0)
+    assert np.all(moments[:, 0] + moments[:, 1] >= moments[:, 2] * (1 - 1e-12))
+    np.testing.assert_allclose(inertia, np.swapaxes(inertia, -1, -2))
+    # and every physical body has its z: the maps are inverse
+    np.testing.assert_allclose(inertia_to_unconstrained(inertia), np.asarray(z), atol=1e-8)
+
+
+def test_free_parameters_round_trip_and_masks():
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)],
+                     ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=0.6, friction=0.4, dtype=jnp.float64)
+    space = FreeParameters(scene, params, {"mass": ["b"], "inertia": True, "restitution": [("b", "ground")],
+                                           "friction": True})
+    assert space.labels[0] == "mass[b]"
+    assert "inertia[a].xy" in space.labels and "restitution[b-ground]" in space.labels
+    back = space.physical(space.unconstrained())
+    for field in ("mass", "inertia", "restitution", "friction"):
+        np.testing.assert_allclose(getattr(back, field), getattr(params, field), rtol=1e-12, atol=1e-15)
+    # fixed entries never move, whatever z is
+    z = jax.tree.map(lambda x: x + 3.0, space.unconstrained())
+    moved = space.physical(z)
+    assert float(moved.mass[0]) == 1.0 and float(moved.mass[1]) != 2.0
+    vector = space.to_vector(params)
+    assert vector.shape == (len(space.labels),)
+    np.testing.assert_allclose(space.to_vector(space.from_vector(vector * 1.5)), vector * 1.5)
+
+
+@pytest.mark.parametrize(("free", "message"), [
+    ("density", "Unknown parameter"),
+    ({"mass": ["nobody"]}, "Unknown body name"),
+    ({"restitution": [("a", "nobody")]}, "not a contact pair"),
+    ({"mass": [False]}, "selects no entry"),
+    ({"gravity": [True, False, True]}, "all three"),
+    ({"extra": True}, "extra is None"),
+])
+def test_bad_free_specifications_are_explained(free, message):
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    with pytest.raises(ValueError, match=message):
+        FreeParameters(scene, scene.params(restitution=0.5), free)
+
+
+def test_a_guess_on_the_boundary_is_refused():
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    with pytest.raises(ValueError, match=r"strictly inside \(0, 1\)"):
+        FreeParameters(scene, scene.params(restitution=1.0), "restitution")
+    flat = scene.params().replace(inertia=jnp.asarray([np.diag([1.0, 1.0, 2.5])]))
+    with pytest.raises(ValueError, match="triangle inequality"):
+        FreeParameters(scene, flat, "inertia")
+
+
+# ------------------------------------------------------------------ (a) bounce
+
+
+@pytest.fixture(scope="module")
+def bounce():
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, SIE, 1e-2)
+
+    def heights(params):
+        state = scene.state(params, position=(0.0, 0.0, 1.1))
+        return rb.rollout(step, params, state, 200)[1].position[:, 0, 2]
+
+    truth = scene.params(restitution=0.8, dtype=jnp.float64)
+    rng = np.random.default_rng(1)
+    measured = heights(truth) + 1e-3 * rng.standard_normal(200)  # 1 mm noise
+    guess = scene.params(restitution=float(rng.uniform(0.2, 0.95)), dtype=jnp.float64)
+    return scene, heights, measured, guess
+
+
+def test_restitution_from_bounce_heights_with_adam(bounce):
+    scene, heights, measured, guess = bounce
+    result = rb.identify.fit(lambda p, d: jnp.mean((heights(p) - d) ** 2), scene, guess, "restitution",
+                             data=measured, progress=False, keep_iterates=True)
+    assert result.converged, result.message
+    assert abs(float(result.params.restitution[0]) / 0.8 - 1) < 0.01  # measured: 2e-5
+    assert all(_physical(p) for p in result.iterates)
+    assert result.loss_history[-1] < result.loss_history[0]
+
+
+def test_restitution_from_bounce_heights_with_levenberg_marquardt(bounce):
+    scene, heights, measured, guess = bounce
+    residuals = lambda p, d: heights(p) - d  # noqa: E731
+    result = rb.identify.fit_least_squares(residuals, scene, guess, "restitution", data=measured, progress=False)
+    assert result.converged, result.message
+    e = float(result.params.restitution[0])
+    assert abs(e / 0.8 - 1) < 0.01
+    report = rb.identify.identifiability(residuals, scene, result.params, "restitution", data=measured)
+    assert report.identifiable
+    # the truth lies within a few standard errors of the estimate
+    assert abs(e - 0.8) < 5 * report.std[0]
+
+
+# ---------------------------------------------------------- (b) inertia ratios
+
+
+@pytest.fixture(scope="module")
+def tumbling():
+    moments = np.array([0.1, 0.2, 0.3])
+    omega0 = np.array([1.0, 0.3, 2.0])
+    times = np.arange(1, 101) * 0.02
+    exact = rb.exact.torque_free_top(moments, omega0, times)
+    rng = np.random.default_rng(2)
+    measured = exact.omega_body + 1e-3 * rng.standard_normal(exact.omega_body.shape)  # gyro noise, rad/s
+    scene = rb.Scene([rb.Body("body", mass=1.0, inertia=(0.2, 0.2, 0.2))], gravity=None)
+    step = rb.make_step(scene, SPLIT, 2e-3)
+
+    def gyro(params):
+        state = scene.state(params, body_angular_velocity=omega0)
+        _, traj = rb.rollout(step, params, state, 1000, save_every=10)
+        return jax.vmap(rb.body_angular_velocity, in_axes=(None, 0))(params, traj)[:, 0]
+
+    guess_moments = rng.uniform(0.1, 0.3, 3)
+    guess_moments[2] = min(guess_moments[2], 0.95 * (guess_moments[0] + guess_moments[1]))
+    guess = scene.params(dtype=jnp.float64).replace(inertia=jnp.asarray(np.diag(guess_moments))[None])
+    return scene, gyro, measured, guess, moments
+
+
+def test_inertia_ratios_from_tumbling(tumbling):
+    scene, gyro, measured, guess, moments = tumbling
+    result = rb.identify.fit_least_squares(lambda p, d: gyro(p) - d, scene, guess, "inertia", data=measured,
+                                           progress=False, keep_iterates=True)
+    fitted = np.asarray(result.params.inertia[0])
+    ratios = np.diag(fitted) / fitted[0, 0]
+    np.testing.assert_allclose(ratios, moments / moments[0], rtol=0.01)
+    assert np.max(np.abs(fitted - np.diag(np.diag(fitted)))) < 0.01 * fitted[0, 0]
+    assert all(_physical(p) for p in result.iterates)
+
+
+def test_tumbling_cannot_tell_the_inertia_scale(tumbling):
+    scene, gyro, measured, _, moments = tumbling
+    truth = scene.params(dtype=jnp.float64).replace(inertia=jnp.asarray(np.diag(moments))[None])
+    report = rb.identify.identifiability(lambda p, d: gyro(p) - d, scene, truth, "inertia", data=measured)
+    assert len(report.unidentifiable) == 1
+    _, direction = report.unidentifiable[0]
+    # the direction is the inertia itself (all entries scaled together), in relative units
+    relative = report.values / np.where(np.abs(report.values) > 0, np.abs(report.values), 1.0)
+    assert abs(direction @ relative) / np.linalg.norm(relative) > 0.999
+    assert "UNIDENTIFIABLE" in str(report) and "inertia[body].xx" in str(report)
+
+
+def test_free_fall_cannot_tell_the_mass():
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    step = rb.make_step(scene, SIE, 1e-2)
+    truth = scene.params(dtype=jnp.float64)
+
+    def heights(params):
+        return rb.rollout(step, params, scene.state(params, velocity=(0.5, 0.0, 3.0)), 50)[1].position[:, 0]
+
+    measured = heights(truth) + 1e-3 * np.random.default_rng(3).standard_normal((50, 3))
+    report = rb.identify.identifiability(lambda p, d: heights(p) - d, scene, truth, ["mass", "gravity"],
+                                         data=measured)
+    assert len(report.unidentifiable) == 1
+    _, direction = report.unidentifiable[0]
+    assert abs(direction[0]) > 0.999 and report.labels[0] == "mass[ball]"
+    assert np.isinf(report.std[0]) and np.all(np.isfinite(report.std[1:]))
+    assert "+1.00 mass[ball]" in str(report)
+
+
+# ------------------------------------------------------------ (c) mass, collision
+
+
+def test_mass_from_a_collision():
+    scene = rb.Scene([rb.Body("known", shape=rb.Sphere(0.1), mass=1.0), rb.Body("unknown", shape=rb.Sphere(0.1), mass=1.0)],
+                     gravity=None, contacts=[("known", "unknown")])
+    step = rb.make_step(scene, SIE, 1e-2)
+
+    def positions(params):
+        state = scene.state(params, position=[[-0.5, 0, 0], [0.5, 0, 0]], velocity=[[2.0, 0, 0], [0, 0, 0]])
+        return rb.rollout(step, params, state, 100)[1].position[:, :, 0]
+
+    truth = scene.params(restitution=0.9, dtype=jnp.float64).replace(mass=jnp.asarray([1.0, 0.4]))
+    rng = np.random.default_rng(4)
+    measured = positions(truth) + 1e-3 * rng.standard_normal((100, 2))
+    guess = truth.replace(mass=jnp.asarray([1.0, rng.uniform(0.1, 3.0)]), restitution=jnp.asarray([0.5]))
+    result = rb.identify.fit_least_squares(lambda p, d: positions(p) - d, scene, guess,
+                                           {"mass": ["unknown"], "restitution": True}, data=measured,
+                                           progress=False, keep_iterates=True)
+    assert result.converged, result.message
+    assert abs(float(result.params.mass[1]) / 0.4 - 1) < 0.02
+    assert float(result.params.mass[0]) == 1.0  # fixed
+    assert abs(float(result.params.restitution[0]) / 0.9 - 1) < 0.01
+    assert all(_physical(p) for p in result.iterates)
+
+
+# --------------------------------------------------------- (d) friction, sliding
+
+
+def test_friction_from_a_sliding_box():
+    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, SIE, 1e-2)
+
+    def track(params):
+        state = scene.state(params, position=(0.0, 0.0, 0.1), velocity=(3.0, 0.0, 0.0))
+        return rb.rollout(step, params, state, 100)[1].position[:, 0, 0]
+
+    truth = scene.params(friction=0.4, dtype=jnp.float64)
+    rng = np.random.default_rng(5)
+    measured = track(truth) + 1e-3 * rng.standard_normal(100)
+    # A cube tips over for mu > 1 (the friction's moment beats the weight's), so the
+    # guesses are those of a box that slides: mu in (0.1, 0.8).
+    guess = scene.params(friction=float(rng.uniform(0.1, 0.8)), dtype=jnp.float64)
+    result = rb.identify.fit_least_squares(lambda p, d: track(p) - d, scene, guess, "friction", data=measured,
+                                           progress=False)
+    assert result.converged, result.message
+    assert abs(float(result.params.friction[0]) / 0.4 - 1) < 0.02
+
+
+# ------------------------------------------------ (e) full inertia, known torques
+
+
+def test_full_inertia_from_known_torques():
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    rot = np.asarray(rb.spatial.quat_to_matrix(rb.spatial.quat_from_axis_angle(axis, 0.7)))
+    truth_inertia = rot @ np.diag([0.2, 0.3, 0.4]) @ rot.T
+
+    def torque(t, params, state):
+        tau = jnp.stack([jnp.sin(3 * t), jnp.cos(2 * t), 0.5 + jnp.sin(5 * t)])[None]
+        return jnp.zeros_like(tau), tau
+
+    scene = rb.Scene([rb.Body("body", mass=1.0, inertia=truth_inertia)], gravity=None,
+                     forces=[rb.ExternalWrench(torque)])
+
+    def gyro(params, dt, steps):
+        step = rb.make_step(scene, SPLIT, dt)
+        _, traj = rb.rollout(step, params, scene.state(params), steps, save_every=steps // 100)
+        return jax.vmap(rb.body_angular_velocity, in_axes=(None, 0))(params, traj)[:, 0]
+
+    truth = scene.params(dtype=jnp.float64)
+    rng = np.random.default_rng(6)
+    # the data from a ten times finer step than the model's
+    measured = gyro(truth, 2e-4, 10000) + 1e-3 * rng.standard_normal((100, 3))
+    guess = truth.replace(inertia=jnp.asarray(np.diag(rng.uniform(0.2, 0.4, 3)))[None])
+    result = rb.identify.fit_least_squares(lambda p, d: gyro(p, 2e-3, 1000) - d, scene, guess, "inertia",
+                                           data=measured, progress=False, keep_iterates=True)
+    assert result.converged, result.message
+    fitted = np.asarray(result.params.inertia[0])
+    np.testing.assert_array_less(np.abs(fitted - truth_inertia), 0.02 * np.abs(truth_inertia))
+    assert all(_physical(p) for p in result.iterates)
+    report = rb.identify.identifiability(lambda p, d: gyro(p, 2e-3, 1000) - d, scene, result.params, "inertia",
+                                         data=measured)
+    assert report.identifiable  # with known torques the scale is determined
+
+
+def test_fit_over_many_experiments_is_vmapped(bounce):
+    """Two drops from different heights, one loss: the mean over the vmapped experiments."""
+    scene, _, _, guess = bounce
+    step = rb.make_step(scene, SIE, 1e-2)
+
+    def heights(params, z0):
+        state = scene.state(params, position=jnp.stack([0.0, 0.0, z0]))
+        return rb.rollout(step, params, state, 100)[1].position[:, 0, 2]
+
+    truth = scene.params(restitution=0.7, dtype=jnp.float64)
+    drops = jnp.asarray([0.8, 1.2])
+    measured = jax.vmap(heights, in_axes=(None, 0))(truth, drops)
+    data = (drops, measured)
+    result = rb.identify.fit_least_squares(lambda p, d: heights(p, d[0]) - d[1], scene, guess, "restitution",
+                                           data=data, batched=True, progress=False)
+    assert abs(float(result.params.restitution[0]) - 0.7) < 1e-6  # noise-free data: exact
