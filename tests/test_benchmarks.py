@@ -71,3 +71,12 @@ def test_contacts_benchmark_quick(tmp_path):
         for r in engines.values():
             assert r["finite"] and r["compile_s"] > 0 and r["steps_per_s_1env"] > 0
     assert (tmp_path / "contacts.png").stat().st_size > 0
+
+
+def test_gradients_benchmark_quick(tmp_path):
+    record = load("gradients").main(["--quick", "--no-plain", "--out", str(tmp_path)])
+    assert record["bounce"]["gradient_finite"] and record["bounce"]["ratio_reverse_over_forward"] > 0
+    long = record["free_body_long"]["checkpointed"]
+    assert long["gradient_finite"] and long["xla_memory_bytes"] > 0
+    assert json.loads((tmp_path / "gradients.json").read_text())["bounce"]["steps"] == 50
+    assert (tmp_path / "gradients.png").stat().st_size > 0

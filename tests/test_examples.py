@@ -366,3 +366,25 @@ def test_notebook_03_contacts_executes(tmp_path):
     exact = float(re.search(r"^exact: the heavy ball sinks up to (\S+) m", text, flags=re.M).group(1))
     assert exact < 1e-6
     assert re.search(r"^pgs  : the heavy ball sinks up to \S+ m", text, flags=re.M)
+
+
+def test_identification_example_recovers_every_scenario(capsys):
+    path = ROOT / "examples" / "identify_parameters.py"
+    spec = importlib.util.spec_from_file_location("identify_example", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    errors = module.main(["--quick"])
+    # --quick records are shorter than the tests' (test_identify.py), so the bounds are
+    # the acceptance's: e 1%, inertia ratios 1%, mass 2%, mu 2%, inertia entries 2%.
+    assert errors["bounce"] < 0.01 and errors["tumbling"] < 0.01
+    assert errors["collision"] < 0.02 and errors["sliding"] < 0.02 and errors["torques"] < 0.02
+    assert "largest relative error per scenario" in capsys.readouterr().out
+
+
+def test_notebook_04_identification_executes(tmp_path):
+    text = _execute_notebook("04_identification.py", tmp_path)
+    e_fit = float(re.search(r"e: truth 0.8, fit ([0-9.]+)", text).group(1))
+    assert abs(e_fit / 0.8 - 1) < 0.01
+    ratios = [float(x) for x in re.search(r"ratios I2/I1, I3/I1: \[([0-9. ]+)\]", text).group(1).split()]
+    np.testing.assert_allclose(ratios, [2.0, 3.0], rtol=0.01)
+    assert text.count("UNIDENTIFIABLE") == 2 and "mass[ball]" in text

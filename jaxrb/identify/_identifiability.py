@@ -48,6 +48,8 @@ class Identifiability:
         covariance: ``(p, p)`` ``sigma^2 (J^T J)^+`` (pseudo-inverse with ``rcond``).
         std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
         rcond: the threshold used.
+        scale: ``(p,)`` the relative coordinates' scale ``|theta|`` (1 for zero entries):
+            a direction ``v`` is the change ``scale * v`` in each parameter's own units.
     """
 
     labels: tuple
@@ -60,6 +62,7 @@ class Identifiability:
     covariance: np.ndarray
     std: np.ndarray
     rcond: float
+    scale: np.ndarray
 
     @property
     def identifiable(self) -> bool:
@@ -67,7 +70,13 @@ class Identifiability:
         return not self.unidentifiable
 
     def describe(self, direction, threshold: float = 0.1) -> str:
-        """A direction as a readable combination, e.g. ``+0.58 inertia[b].xx +0.58 inertia[b].yy``."""
+        """A direction as a change in the parameters' own units, normalised, largest first.
+
+        E.g. ``+0.80 inertia[b].zz +0.53 inertia[b].yy +0.27 inertia[b].xx``: the inertia
+        scaled as a whole. Terms below ``threshold`` are left out.
+        """
+        direction = np.asarray(direction) * self.scale
+        direction = direction / np.linalg.norm(direction)
         order = np.argsort(-np.abs(direction))
         sign = np.sign(direction[order[0]]) or 1.0
         terms = [f"{sign * direction[i]:+.2f} {self.labels[i]}" for i in order if abs(direction[i]) >= threshold]
@@ -133,4 +142,4 @@ def identifiability(
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     for _, direction in weak:
         std = np.where(np.abs(direction) >= 0.1, np.inf, std)
-    return Identifiability(space.labels, theta, jac, sv, vt, weak, sigma2, covariance, std, rcond)
+    return Identifiability(space.labels, theta, jac, sv, vt, weak, sigma2, covariance, std, rcond, scale)

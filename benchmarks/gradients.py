@@ -1,0 +1,256 @@
+"""The cost of gradients: time against the forward rollout, and memory with checkpointing.
+
+What it measures
+    * ``bounce``: a ball (r = 0.1 m, 1 kg) dropped from 1 m clearance, e = 0.8, mu = 0.5,
+      h = 1 ms, 1000 steps (two impacts, time of impact located inside steps). The loss is
+      the sum of the heights over the trajectory. Times: the jitted forward rollout, the
+      reverse-mode gradient with respect to everything in ``Params`` and the initial
+      ``State`` (``jax.grad``), and the forward-mode Jacobian with respect to
+      ``(e, mu, mass)`` (``jax.jacfwd``); each the best of ``--repeats`` calls after a
+      warm-up, with its compile time. The ratio gradient / forward is the figure of merit.
+    * ``free_body_long``: a tumbling box under gravity, h = 1 ms, ``--long-steps`` steps
+      (default 1e5), the gradient of the final pose with respect to the inertia and the
+      initial state, through ``rollout(..., checkpoint=True, save_every=k)`` with
+      ``k ~ sqrt(steps)``, and without checkpointing for comparison. Memory: XLA's own
+      buffer assignment for the compiled gradient (``memory_analysis()``: arguments +
+      outputs + temporaries, which is the peak the program needs), and the peak resident
+      set (``ru_maxrss``) of a fresh process that runs only this measurement (so it
+      includes Python, jaxlib and the compiler, but no other benchmark).
+
+    Peers (``benchmarks/peers.py``, MJX and Brax) run in another interpreter given by
+    ``--peer-python``: the same gradient/forward ratio on their ball drop.
+
+How to run (from the repository root)
+    python benchmarks/gradients.py                      # float64, full sizes
+    python benchmarks/gradients.py --peer-python /path/to/venv/bin/python
+    python benchmarks/gradients.py --quick              # CI smoke run, temp dir
+
+It prints a table and writes ``gradients.json`` and ``gradients.png`` to ``--out``
+(default ``benchmarks/results``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxrb as rb
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
+from _machine import cpu_model  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_OUT = HERE / "results"
+
+
+def timed(fn, args, repeats):
+    jax.block_until_ready(fn(*args))
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def compiled(fn, *args):
+    t0 = time.perf_counter()
+    exe = jax.jit(fn).lower(*args).compile()
+    return exe, time.perf_counter() - t0
+
+
+def memory_bytes(exe) -> int | None:
+    analysis = exe.memory_analysis()
+    if analysis is None:
+        return None
+    return int(analysis.argument_size_in_bytes + analysis.output_size_in_bytes + analysis.temp_size_in_bytes
+               - analysis.alias_size_in_bytes)
+
+
+def bounce(steps, repeats, dtype):
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    params = scene.params(restitution=0.8, friction=0.5, dtype=dtype)
+    state = step.prepare(scene.state(params, position=(0.0, 0.0, 1.1), velocity=(0.3, 0.0, 0.0),
+                                     angular_velocity=(0.0, 2.0, 0.0)))
+
+    def loss(p, s):
+        _, traj = rb.rollout(step, p, s, steps)
+        return jnp.sum(traj.position[:, 0, 2])
+
+    def coefficients(x):
+        return loss(params.replace(restitution=x[:1], friction=x[1:2], mass=x[2:3]), state)
+
+    x = jnp.asarray([0.8, 0.5, 1.0], dtype)
+    forward, c_fwd = compiled(loss, params, state)
+    reverse, c_rev = compiled(jax.grad(loss, argnums=(0, 1)), params, state)
+    jacfwd, c_jf = compiled(jax.jacfwd(coefficients), x)
+    t_fwd = timed(forward, (params, state), repeats)
+    t_rev = timed(reverse, (params, state), repeats)
+    t_jf = timed(jacfwd, (x,), repeats)
+    grads = reverse(params, state)
+    finite = all(bool(np.all(np.isfinite(np.asarray(g)))) for g in jax.tree.leaves(grads))
+    return {
+        "steps": steps, "forward_s": t_fwd, "reverse_grad_s": t_rev, "forward_jacobian_3_params_s": t_jf,
+        "ratio_reverse_over_forward": t_rev / t_fwd, "ratio_jacfwd3_over_forward": t_jf / t_fwd,
+        "compile_forward_s": c_fwd, "compile_reverse_s": c_rev, "compile_jacfwd_s": c_jf,
+        "reverse_memory_bytes": memory_bytes(reverse), "forward_memory_bytes": memory_bytes(forward),
+        "gradient_finite": finite,
+    }
+
+
+def free_body_long(steps, repeats, dtype, plain_too: bool):
+    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)])
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    params = scene.params(dtype=dtype)
+    state = scene.state(params, velocity=(1.0, 0.0, 5.0), angular_velocity=(0.3, 4.0, 0.1))
+    every = max(d for d in range(1, int(math.isqrt(steps)) + 1) if steps % d == 0)
+
+    def loss(p, s, checkpoint):
+        end, _ = rb.rollout(step, p, s, steps, save_every=every, checkpoint=checkpoint)
+        return jnp.sum(end.position**2) + jnp.sum(end.orientation * jnp.asarray([1.0, 2.0, 3.0, 4.0], dtype))
+
+    out = {"steps": steps, "save_every": every}
+    forward, c_fwd = compiled(lambda p, s: loss(p, s, True), params, state)
+    t_fwd = timed(forward, (params, state), repeats)
+    variants = [("checkpointed", True)] + ([("plain", False)] if plain_too else [])
+    for name, checkpoint in variants:
+        grad = jax.grad(lambda p, s, c=checkpoint: loss(p, s, c), argnums=(0, 1))
+        exe, c_grad = compiled(grad, params, state)
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        t_grad = timed(exe, (params, state), repeats)
+        g = exe(params, state)
+        out[name] = {
+            "grad_s": t_grad, "compile_s": c_grad, "ratio_grad_over_forward": t_grad / t_fwd,
+            "xla_memory_bytes": memory_bytes(exe),
+            "process_peak_rss_bytes": 1024 * resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+            "rss_before_bytes": 1024 * rss0,
+            "gradient_finite": all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree.leaves(g)),
+        }
+    out["forward_s"] = t_fwd
+    out["compile_forward_s"] = c_fwd
+    return out
+
+
+def long_in_fresh_process(args):
+    """``free_body_long`` in a new interpreter, so that its peak RSS is its own."""
+    code = (f"import json, sys, jax; sys.path.insert(0, {str(HERE)!r}); "
+            f"jax.config.update('jax_enable_x64', {not args.float32!r}); import jax.numpy as jnp; "
+            f"import gradients as g; print('LONG_JSON' + json.dumps(g.free_body_long({args.long_steps}, "
+            f"{args.repeats}, jnp.{'float32' if args.float32 else 'float64'}, {not args.no_plain!r})))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=3600)
+    for line in out.stdout.splitlines():
+        if line.startswith("LONG_JSON"):
+            return json.loads(line[len("LONG_JSON"):])
+    raise RuntimeError(f"the long-rollout measurement failed:\n{(out.stderr or out.stdout)[-3000:]}")
+
+
+def run_peers(peer_python, steps, repeats):
+    code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
+            f"print('PEERS_JSON' + json.dumps(peers.gradient_ratios(steps={steps}, repeats={repeats})))")
+    out = subprocess.run([peer_python, "-c", code], capture_output=True, text=True, timeout=3600)
+    for line in out.stdout.splitlines():
+        if line.startswith("PEERS_JSON"):
+            return json.loads(line[len("PEERS_JSON"):])
+    return {"error": (out.stderr or out.stdout)[-2000:]}
+
+
+def print_table(record):
+    b = record["bounce"]
+    print(f"\nbounce, {b['steps']} steps: forward {b['forward_s'] * 1e3:.1f} ms, reverse gradient "
+          f"{b['reverse_grad_s'] * 1e3:.1f} ms (x{b['ratio_reverse_over_forward']:.2f}), forward Jacobian (3 params) "
+          f"{b['forward_jacobian_3_params_s'] * 1e3:.1f} ms (x{b['ratio_jacfwd3_over_forward']:.2f}); compile "
+          f"{b['compile_forward_s']:.1f} / {b['compile_reverse_s']:.1f} / {b['compile_jacfwd_s']:.1f} s")
+    f = record["free_body_long"]
+    for name in ("checkpointed", "plain"):
+        if name in f:
+            r = f[name]
+            mem = r["xla_memory_bytes"]
+            print(f"free body, {f['steps']} steps, {name:<12}: gradient {r['grad_s']:.2f} s "
+                  f"(x{r['ratio_grad_over_forward']:.2f} forward), XLA memory "
+                  f"{(mem or float('nan')) / 2**20:.1f} MiB, process peak RSS {r['process_peak_rss_bytes'] / 2**20:.0f} MiB")
+    peers = record.get("peers", {})
+    for engine in ("mjx", "brax_generalized", "brax_positional"):
+        r = peers.get(engine)
+        if not isinstance(r, dict):
+            continue
+        if "error" in r:
+            print(f"peer {engine:<18}: {str(r['error'])[:100]}")
+        else:
+            ratio = r.get("ratio", r.get("ratio_grad_over_forward", float("nan")))
+            print(f"peer {engine:<18}: gradient/forward x{ratio:.2f}  {json.dumps({k: v for k, v in r.items() if k != 'gradient'})[:160]}")
+
+
+def plot(record, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names, ratios = ["jaxrb reverse", "jaxrb jacfwd(3)"], [record["bounce"]["ratio_reverse_over_forward"],
+                                                           record["bounce"]["ratio_jacfwd3_over_forward"]]
+    for engine, r in record.get("peers", {}).items():
+        if isinstance(r, dict) and "error" not in r:
+            ratio = r.get("ratio", r.get("ratio_grad_over_forward"))
+            if isinstance(ratio, (int, float)):
+                names.append(engine)
+                ratios.append(ratio)
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.barh(names, ratios)
+    ax.axvline(4.0, color="k", ls="--", lw=0.8, label="target 4x")
+    ax.set_xlabel("gradient time / forward time, ball drop")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--steps", type=int, default=1000, help="bouncing-ball rollout length")
+    p.add_argument("--long-steps", type=int, default=100_000, help="checkpointed free-body rollout length")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--no-plain", action="store_true", help="skip the un-checkpointed long gradient")
+    p.add_argument("--float32", action="store_true")
+    p.add_argument("--peer-python", default=None)
+    p.add_argument("--quick", action="store_true", help="tiny sizes, temp output dir (CI smoke run)")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    if not args.float32:
+        jax.config.update("jax_enable_x64", True)
+    dtype = jnp.float32 if args.float32 else jnp.float64
+    if args.quick:
+        args.steps, args.long_steps, args.repeats = 50, 400, 1
+    out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": "python benchmarks/gradients.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__},
+        "dtype": str(jnp.dtype(dtype)),
+    }
+    record["bounce"] = bounce(args.steps, args.repeats, dtype)
+    record["free_body_long"] = long_in_fresh_process(args)
+    if args.peer_python:
+        record["peers"] = run_peers(args.peer_python, args.steps, args.repeats)
+    print_table(record)
+    (out / "gradients.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
+    plot(record, out / "gradients.png")
+    print(f"\nwrote {out / 'gradients.json'} and {out / 'gradients.png'}")
+    return record
+
+
+if __name__ == "__main__":
+    main()
