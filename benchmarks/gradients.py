@@ -182,15 +182,16 @@ def print_table(record):
                   f"(x{r['ratio_grad_over_forward']:.2f} forward), XLA memory "
                   f"{(mem or float('nan')) / 2**20:.1f} MiB, process peak RSS {r['process_peak_rss_bytes'] / 2**20:.0f} MiB")
     peers = record.get("peers", {})
-    for engine in ("mjx", "brax_generalized", "brax_positional"):
+    for engine in ("mjx", "mjx_iterations1", "brax_generalized", "brax_positional"):
         r = peers.get(engine)
         if not isinstance(r, dict):
             continue
         if "error" in r:
-            print(f"peer {engine:<18}: {str(r['error'])[:100]}")
+            print(f"peer {engine:<18}: gradient fails: {str(r['error'])[:100]}")
         else:
-            ratio = r.get("ratio", r.get("ratio_grad_over_forward", float("nan")))
-            print(f"peer {engine:<18}: gradient/forward x{ratio:.2f}  {json.dumps({k: v for k, v in r.items() if k != 'gradient'})[:160]}")
+            print(f"peer {engine:<18}: gradient/forward x{r.get('grad_over_forward', float('nan')):.2f}, "
+                  f"finite {r.get('grad_finite')}, gradient {r.get('grad')} vs local finite difference "
+                  f"{r.get('grad_fd_local')}")
 
 
 def plot(record, path):
@@ -202,8 +203,8 @@ def plot(record, path):
     names, ratios = ["jaxrb reverse", "jaxrb jacfwd(3)"], [record["bounce"]["ratio_reverse_over_forward"],
                                                            record["bounce"]["ratio_jacfwd3_over_forward"]]
     for engine, r in record.get("peers", {}).items():
-        if isinstance(r, dict) and "error" not in r:
-            ratio = r.get("ratio", r.get("ratio_grad_over_forward"))
+        if isinstance(r, dict) and "error" not in r and r.get("grad_finite"):
+            ratio = r.get("grad_over_forward")
             if isinstance(ratio, (int, float)):
                 names.append(engine)
                 ratios.append(ratio)

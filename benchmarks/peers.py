@@ -87,7 +87,9 @@ XLA:CPU deadlock workaround
 
 Public functions (each result is a flat ``dict``; a failure gives ``{"error": "..."}``)
     :func:`available`, :func:`mjx_box_stack`, :func:`mjx_ball_drop`,
-    :func:`brax_box_stack`, :func:`brax_ball_drop`, :func:`run_all`; helpers
+    :func:`brax_box_stack`, :func:`brax_ball_drop`, :func:`run_all`,
+    :func:`gradient_ratios` (reverse-mode cost through a ball_drop rollout; CLI
+    ``--gradients``); helpers
     :func:`versions`, :func:`single_thread_xla_pool`, :func:`restitution_dampratio`
     and the MJCF builders :func:`box_stack_mjcf`, :func:`ball_drop_mjcf`.
 """
@@ -338,16 +340,24 @@ def ball_drop_mjcf(restitution: float = RESTITUTION, timeconst: float = MUJOCO_T
 #   velocities(s)   (num_bodies, 3) world linear velocities of the centres, m/s
 #   penetration(s)  scalar: max(0, -min signed distance) over all contacts of state s, m
 #   info            dict of solver settings to record
+#   init(q, qd)     a state with generalised positions q and velocities qd (free joints:
+#                   q = (x, y, z, quaternion), qd = (world linear velocity, angular)),
+#                   everything derived from them recomputed; traceable, so a loss can
+#                   differentiate through the initial state
+#   q0, qd0         state0's q and qd
 
 
 class _Adapter:
-    def __init__(self, state0, step, positions, velocities, penetration, info):
+    def __init__(self, state0, step, positions, velocities, penetration, info, init=None, q0=None, qd0=None):
         self.state0 = state0
         self.step = step
         self.positions = positions
         self.velocities = velocities
         self.penetration = penetration
         self.info = info
+        self.init = init
+        self.q0 = q0
+        self.qd0 = qd0
 
 
 def _max_penetration(dist):
@@ -358,11 +368,15 @@ def _max_penetration(dist):
     return jnp.maximum(0.0, -jnp.min(dist))
 
 
-def _mjx_adapter(xml: str) -> _Adapter:
+def _mjx_adapter(xml: str, iterations: int | None = None) -> _Adapter:
+    """MJX adapter for the scene ``xml``; ``iterations`` overrides the constraint solver's
+    ``opt.iterations`` (default: the MJCF's, i.e. MuJoCo's 100)."""
     import mujoco
     from mujoco import mjx
 
     model = mujoco.MjModel.from_xml_string(xml)
+    if iterations is not None:
+        model.opt.iterations = int(iterations)
     try:
         mx = mjx.put_model(model, impl="jax")
         d0 = mjx.make_data(model, impl="jax")
@@ -395,6 +409,11 @@ def _mjx_adapter(xml: str) -> _Adapter:
         velocities=lambda d: d.qvel.reshape(nbody, 6)[:, :3],
         penetration=penetration,
         info=info,
+        # position-level quantities (xpos, contacts, ...) are recomputed by mjx.step's
+        # forward pass, so replacing qpos and qvel is a complete re-initialisation
+        init=lambda q, qd: d0.replace(qpos=q, qvel=qd),
+        q0=d0.qpos,
+        qd0=d0.qvel,
     )
 
 
@@ -438,6 +457,11 @@ def _brax_adapter(xml: str, pipeline_name: str) -> _Adapter:
         velocities=lambda s: s.xd.vel,
         penetration=penetration,
         info=info,
+        # ``positional`` steps the maximal coordinates (x, xd), so the state must be rebuilt
+        # from (q, qd) by ``pipeline.init``, not just have its q / qd replaced
+        init=lambda q, qd: pipeline.init(sys_, q, qd),
+        q0=state0.q,
+        qd0=state0.qd,
     )
 
 
@@ -869,6 +893,182 @@ def brax_ball_drop(
     return out
 
 
+# ------------------------------------------------------------------------------ gradients
+
+GRADIENT_STEPS = 1000  # 1 s of ball_drop: the free fall, the first bounce and some flight
+# m/s, central-difference steps for reference slopes of the loss: the local one to check
+# the autodiff value, the coarse one to show the slope over a visible change of the drop
+# (after a bounce the loss is jagged at small scales, so the two can differ in sign)
+GRADIENT_FD_EPS = {"local": 1e-4, "coarse": 1e-2}
+_VZ = 2  # index of the ball's vertical velocity in qd (a free joint's linear part comes first)
+
+
+def _gradient_loss(adapter: _Adapter, steps: int) -> Callable:
+    """``loss(x)``: the time integral h * sum_k z_k (m s) of the ball's centre height over
+    ``steps`` steps, the ball released with an extra vertical velocity ``x`` (m/s; x = 0
+    is the ball_drop scene).
+
+    The initial state is rebuilt by ``adapter.init`` from x, so the derivative flows
+    through it, and the rollout is a fixed-length ``lax.scan``: reverse mode cannot
+    transpose ``fori_loop`` with a traced trip count or ``while_loop``, which is why
+    the throughput rollout (:func:`_rollout_fn`) is not reused here.
+    """
+    import jax.numpy as jnp
+    from jax import lax
+
+    def body(s, _):
+        s = adapter.step(s)
+        return s, adapter.positions(s)[0, 2]
+
+    def loss(x):
+        state = adapter.init(adapter.q0, adapter.qd0.at[_VZ].add(x))
+        _, z = lax.scan(body, state, None, length=steps)
+        return TIMESTEP * jnp.sum(z)
+
+    return loss
+
+
+def _best_call(compiled: Callable, x, repeats: int) -> tuple[float, Any]:
+    """Best wall time (s) of ``repeats`` calls of ``compiled(x)`` after one warm-up call,
+    each ended by ``block_until_ready``, and the last call's value."""
+    value = _block(compiled(x))
+    best = math.inf
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        value = _block(compiled(x))
+        best = min(best, time.perf_counter() - t0)
+    return best, value
+
+
+def _gradient_figures(adapter: _Adapter, steps: int, repeats: int) -> dict[str, Any]:
+    """Forward and reverse-mode cost of :func:`_gradient_loss` for one adapter.
+
+    The forward part runs first and is kept when the gradient fails: that failure is
+    reported as ``error`` / ``traceback_tail`` (with ``failed_stage = "gradient"``) next
+    to the forward figures, since "the forward works, reverse mode does not" is itself
+    the result. Central differences of the compiled forward, ``grad_fd_local`` (step
+    1e-4 m/s) and ``grad_fd_coarse`` (1e-2 m/s), are references for the gradient's
+    value; ``grad_rel_diff_vs_fd`` compares with the local one. They need not agree with
+    each other: contact switching on and off at step boundaries makes the loss jagged
+    (with MJX 3.17, 1000 steps: -35, 19, -0.46 and 0.78 s^2 for steps of 1e-4, 1e-3,
+    1e-2 and 3e-2 m/s). In float32 the local difference is also noisy: over 50 steps of
+    free fall (exact slope h^2 n (n + 1) / 2 = 1.275e-3 s^2) it was off by 1e-5 s^2 for
+    MJX and 2.5e-4 s^2 for Brax ``positional``.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    out: dict[str, Any] = dict(adapter.info)
+    loss = _gradient_loss(adapter, steps)
+    x = jnp.zeros((), dtype=jnp.asarray(adapter.qd0).dtype)
+
+    _log(f"compiling the forward loss ({steps} steps)")
+    t0 = time.perf_counter()
+    forward = jax.jit(loss).lower(x).compile()
+    out["forward_compile_s"] = time.perf_counter() - t0
+    forward_s, value = _best_call(forward, x, repeats)
+    out["forward_run_s"] = forward_s
+    out["loss_m_s"] = float(value)
+    for tag, eps in GRADIENT_FD_EPS.items():
+        out[f"grad_fd_{tag}"] = (float(forward(x + eps)) - float(forward(x - eps))) / (2.0 * eps)
+    fd = out["grad_fd_local"]
+
+    def gradient() -> dict[str, Any]:
+        _log("compiling the gradient")
+        t0 = time.perf_counter()
+        grad = jax.jit(jax.grad(loss)).lower(x).compile()
+        r: dict[str, Any] = {"grad_compile_s": time.perf_counter() - t0}
+        grad_s, g = _best_call(grad, x, repeats)
+        g = float(g)
+        r.update(
+            grad_run_s=grad_s,
+            grad_over_forward=grad_s / forward_s,
+            grad_finite=bool(np.isfinite(g)),
+            grad=g,
+            grad_rel_diff_vs_fd=(g - fd) / abs(fd) if fd != 0 else float("nan"),
+        )
+        return r
+
+    r = _run_guarded(gradient)
+    if "error" in r:
+        r["failed_stage"] = "gradient"
+    out.update(r)
+    return out
+
+
+def gradient_ratios(steps: int = GRADIENT_STEPS, repeats: int = 3) -> dict[str, Any]:
+    """Cost of reverse-mode differentiation through a ``steps``-step ball_drop rollout,
+    per peer: MJX (as configured for the benchmark: Newton, 100 iterations), MJX with
+    ``opt.iterations = 1`` (a labelled variant, see below), Brax ``generalized`` and Brax
+    ``positional``.
+
+    The loss (:func:`_gradient_loss`) is the time integral of the ball's height, as a
+    function of an extra initial vertical velocity x (m/s), evaluated and differentiated
+    at x = 0. For the forward ``jax.jit(loss)`` and the gradient ``jax.jit(jax.grad(loss))``
+    it records the compile time (``lower(x).compile()``, s) and the best of ``repeats``
+    calls after a warm-up (s), then ``grad_over_forward`` (gradient time / forward time),
+    ``grad_finite``, ``grad`` (m s per m/s = s^2), and central differences
+    ``grad_fd_local`` / ``grad_fd_coarse`` of the forward with ``grad_rel_diff_vs_fd``
+    (see :func:`_gradient_figures`).
+
+    MJX's constraint solver runs a ``lax.while_loop`` over its iterations, which reverse
+    mode cannot transpose; the benchmark's configuration is measured as is and a failure
+    is reported. ``mjx_iterations1`` is the variant the MuJoCo maintainers point to for
+    gradients (google-deepmind/mujoco issue #2259): with ``opt.iterations == 1``
+    ``mjx.solve`` calls its loop body once instead of the while loop (its line search
+    is already a scan). One Newton iteration is a different, less converged simulation,
+    so it is not the benchmark's MJX; its ``loss_m_s`` shows how far it moves.
+
+    Brax ``generalized`` (0.14.2) returns a NaN gradient here, even for one step of free
+    fall: its free-joint integrator (``_integrate_q_free``) divides by
+    ``jnp.linalg.norm`` of the angular velocity, whose derivative at the ball's zero spin
+    is 0/0 (forward mode gives NaN too). It is reported as measured, not worked around.
+
+    Returns ``{"available", "versions", "steps", "repeats", "input", "loss", "dtype",
+    "xla_cpu_pool", "loadavg_1min_at_start", "mjx", "mjx_iterations1",
+    "brax_generalized", "brax_positional", "wall_s"}``; an engine that is missing or
+    fails outright gives ``{"error", "traceback_tail"}``.
+    """
+    single_thread_xla_pool()
+    t_start = time.perf_counter()
+    out: dict[str, Any] = {
+        "available": available(),
+        "versions": versions(),
+        "steps": int(steps),
+        "repeats": int(repeats),
+        "input": "x = extra initial vertical velocity of the ball, m/s, evaluated at x = 0",
+        "loss": "TIMESTEP * sum over the steps of the ball centre height after each step, m s",
+        "xla_cpu_pool": single_thread_xla_pool(),
+        "loadavg_1min_at_start": os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan"),
+    }
+    import jax.numpy as jnp
+
+    out["dtype"] = str(jnp.zeros(()).dtype)
+    xml = ball_drop_mjcf(RESTITUTION, MUJOCO_TIMECONST)
+
+    engines: list[tuple[str, str, Callable[[], _Adapter]]] = [
+        ("mjx", "mjx", lambda: _mjx_adapter(xml)),
+        ("mjx_iterations1", "mjx", lambda: _mjx_adapter(xml, iterations=1)),
+    ]
+    engines += [(f"brax_{name}", "brax", lambda name=name: _brax_adapter(xml, name)) for name in BRAX_PIPELINES]
+    for key, peer, make in engines:
+        missing = _require(peer)
+        if missing:
+            out[key] = {"error": f"{peer} unavailable: {missing}"}
+            continue
+
+        def run(key=key, make=make):
+            _log(f"gradients: {key}")
+            r = _gradient_figures(make(), int(steps), int(repeats))
+            if key == "mjx_iterations1":
+                r["variant"] = "opt.iterations = 1 (differentiable workaround, not the benchmark's MJX)"
+            return r
+
+        out[key] = _run_guarded(run)
+    out["wall_s"] = time.perf_counter() - t_start
+    return out
+
+
 def run_all(small: bool = False) -> dict[str, Any]:
     """Every peer on every scene: ``{"available", "versions", "mjx_box_stack",
     "mjx_ball_drop", "brax_box_stack", "brax_ball_drop", "wall_s"}``.
@@ -897,8 +1097,19 @@ def _main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--small", action="store_true", help="smoke run: 50 steps, E = (1, 8)")
     parser.add_argument("--out", help="write the JSON result here as well as to stdout")
+    parser.add_argument(
+        "--gradients",
+        action="store_true",
+        help=f"run gradient_ratios instead ({GRADIENT_STEPS} steps, 3 repeats; --small: {SMALL_STEPS} steps, 1)",
+    )
     args = parser.parse_args(argv)
-    result = run_all(small=args.small)
+    if args.gradients:
+        if args.small:
+            result = gradient_ratios(steps=SMALL_STEPS, repeats=1)
+        else:
+            result = gradient_ratios(steps=GRADIENT_STEPS, repeats=3)
+    else:
+        result = run_all(small=args.small)
     text = json.dumps(result, indent=2, sort_keys=False, default=str)
     print(text)
     if args.out:
