@@ -1,8 +1,11 @@
-"""What machine a benchmark ran on, for its JSON record."""
+"""What machine a benchmark ran on, and helpers shared by the benchmark scripts."""
 
 from __future__ import annotations
 
+import json
 import platform
+import resource
+import subprocess
 from pathlib import Path
 
 
@@ -15,3 +18,32 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def json_from_python(python: str, code: str, marker: str, timeout: int = 3600) -> dict:
+    """Run ``code`` in the interpreter ``python``; return the JSON it printed after ``marker``.
+
+    ``{"error": <the end of its output>}`` if it printed none (a failed peer run is
+    reported, never raised).
+    """
+    out = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=timeout)
+    for line in out.stdout.splitlines():
+        if line.startswith(marker):
+            return json.loads(line[len(marker):])
+    return {"error": (out.stderr or out.stdout)[-3000:]}
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident set, bytes.
+
+    ``VmHWM`` from /proc/self/status where there is one: unlike ``ru_maxrss`` it starts
+    afresh at ``exec``, so a child process started by a large parent does not inherit the
+    parent's peak (Linux keeps ``ru_maxrss`` across ``execve``).
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

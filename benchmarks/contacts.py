@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -46,7 +45,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model  # noqa: E402
+from _machine import cpu_model, json_from_python  # noqa: E402
 
 G = 9.81
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
@@ -136,11 +135,7 @@ def run_peers(peer_python, quick):
             return {"error": repr(err)}
     code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
             f"print('PEERS_JSON' + json.dumps(peers.run_all(small={quick!r})))")
-    out = subprocess.run([peer_python, "-c", code], capture_output=True, text=True, timeout=3600)
-    for line in out.stdout.splitlines():
-        if line.startswith("PEERS_JSON"):
-            return json.loads(line[len("PEERS_JSON"):])
-    return {"error": (out.stderr or out.stdout)[-2000:]}
+    return json_from_python(peer_python, code, "PEERS_JSON")
 
 
 def print_table(results):

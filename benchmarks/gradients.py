@@ -35,8 +35,6 @@ import argparse
 import datetime
 import json
 import math
-import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,7 +47,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model  # noqa: E402
+from _machine import cpu_model, json_from_python, peak_rss_bytes  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
@@ -129,14 +127,14 @@ def free_body_long(steps, repeats, dtype, plain_too: bool):
     for name, checkpoint in variants:
         grad = jax.grad(lambda p, s, c=checkpoint: loss(p, s, c), argnums=(0, 1))
         exe, c_grad = compiled(grad, params, state)
-        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        rss0 = peak_rss_bytes()
         t_grad = timed(exe, (params, state), repeats)
         g = exe(params, state)
         out[name] = {
             "grad_s": t_grad, "compile_s": c_grad, "ratio_grad_over_forward": t_grad / t_fwd,
             "xla_memory_bytes": memory_bytes(exe),
-            "process_peak_rss_bytes": 1024 * resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-            "rss_before_bytes": 1024 * rss0,
+            "process_peak_rss_bytes": peak_rss_bytes(),
+            "peak_rss_before_run_bytes": rss0,
             "gradient_finite": all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree.leaves(g)),
         }
     out["forward_s"] = t_fwd
@@ -150,21 +148,16 @@ def long_in_fresh_process(args):
             f"jax.config.update('jax_enable_x64', {not args.float32!r}); import jax.numpy as jnp; "
             f"import gradients as g; print('LONG_JSON' + json.dumps(g.free_body_long({args.long_steps}, "
             f"{args.repeats}, jnp.{'float32' if args.float32 else 'float64'}, {not args.no_plain!r})))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=3600)
-    for line in out.stdout.splitlines():
-        if line.startswith("LONG_JSON"):
-            return json.loads(line[len("LONG_JSON"):])
-    raise RuntimeError(f"the long-rollout measurement failed:\n{(out.stderr or out.stdout)[-3000:]}")
+    result = json_from_python(sys.executable, code, "LONG_JSON")
+    if "error" in result:
+        raise RuntimeError(f"the long-rollout measurement failed:\n{result['error']}")
+    return result
 
 
 def run_peers(peer_python, steps, repeats):
     code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
             f"print('PEERS_JSON' + json.dumps(peers.gradient_ratios(steps={steps}, repeats={repeats})))")
-    out = subprocess.run([peer_python, "-c", code], capture_output=True, text=True, timeout=3600)
-    for line in out.stdout.splitlines():
-        if line.startswith("PEERS_JSON"):
-            return json.loads(line[len("PEERS_JSON"):])
-    return {"error": (out.stderr or out.stdout)[-2000:]}
+    return json_from_python(peer_python, code, "PEERS_JSON")
 
 
 def print_table(record):
@@ -180,7 +173,8 @@ def print_table(record):
             mem = r["xla_memory_bytes"]
             print(f"free body, {f['steps']} steps, {name:<12}: gradient {r['grad_s']:.2f} s "
                   f"(x{r['ratio_grad_over_forward']:.2f} forward), XLA memory "
-                  f"{(mem or float('nan')) / 2**20:.1f} MiB, process peak RSS {r['process_peak_rss_bytes'] / 2**20:.0f} MiB")
+                  f"{(mem or float('nan')) / 2**20:.1f} MiB, "
+                  f"process peak RSS {r['process_peak_rss_bytes'] / 2**20:.0f} MiB")
     peers = record.get("peers", {})
     for engine in ("mjx", "mjx_iterations1", "brax_generalized", "brax_positional"):
         r = peers.get(engine)

@@ -77,8 +77,8 @@ def tumbling(rng, quick):
 
 
 def collision(rng, quick):
-    scene = rb.Scene([rb.Body("known", shape=rb.Sphere(0.1), mass=1.0), rb.Body("unknown", shape=rb.Sphere(0.1), mass=1.0)],
-                     gravity=None, contacts=[("known", "unknown")])
+    balls = [rb.Body(name, shape=rb.Sphere(0.1), mass=1.0) for name in ("known", "unknown")]
+    scene = rb.Scene(balls, gravity=None, contacts=[("known", "unknown")])
     step = rb.make_step(scene, SIE, 1e-2)
     n = 70 if quick else 100
 

@@ -120,6 +120,6 @@ def test_two_ball_collision_gradients_match_finite_differences():
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-9)
     # Closed form: v_b' = (1 + e) m_a v / (m_a + m_b); x_b(T) = 0.5 + v_b' (T - t_c).
     t_c, total = 0.8 / 2.1, 0.6
-    m_a, m_b, e, v = 1.0, 0.4, 0.9, 2.1
+    m_a, m_b, v = 1.0, 0.4, 2.1
     dxb_de = m_a * v / (m_a + m_b) * (total - t_c)
     np.testing.assert_allclose(jac[1, 2], dxb_de, rtol=1e-9)

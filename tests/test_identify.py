@@ -47,8 +47,8 @@ def test_every_unconstrained_point_is_a_physical_body():
 
 
 def test_free_parameters_round_trip_and_masks():
-    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)],
-                     ground=rb.Plane(), contacts="all")
+    bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)]
+    scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
     params = scene.params(restitution=0.6, friction=0.4, dtype=jnp.float64)
     space = FreeParameters(scene, params, {"mass": ["b"], "inertia": True, "restitution": [("b", "ground")],
                                            "friction": True})
@@ -201,8 +201,8 @@ def test_free_fall_cannot_tell_the_mass():
 
 
 def test_mass_from_a_collision():
-    scene = rb.Scene([rb.Body("known", shape=rb.Sphere(0.1), mass=1.0), rb.Body("unknown", shape=rb.Sphere(0.1), mass=1.0)],
-                     gravity=None, contacts=[("known", "unknown")])
+    balls = [rb.Body(name, shape=rb.Sphere(0.1), mass=1.0) for name in ("known", "unknown")]
+    scene = rb.Scene(balls, gravity=None, contacts=[("known", "unknown")])
     step = rb.make_step(scene, SIE, 1e-2)
 
     def positions(params):
