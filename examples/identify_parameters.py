@@ -139,7 +139,8 @@ def torques(rng, quick):
     info = rb.identify.identifiability(residuals, scene, result.params, "inertia", data=measured)
     fitted = np.asarray(result.params.inertia[0])
     upper = np.triu_indices(3)
-    report("inertia entries", truth_inertia[upper], fitted[upper], np.nan * np.ones(6))
+    std = info.std[[0, 3, 4, 1, 5, 2]]  # labels xx yy zz xy xz yz -> upper triangle xx xy xz yy yz zz
+    report("inertia xx xy xz yy yz zz", truth_inertia[upper], fitted[upper], std)
     print(f"  identifiable: {info.identifiable}")
     return float(np.max(np.abs(fitted - truth_inertia) / np.abs(truth_inertia)))
 
