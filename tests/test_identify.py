@@ -46,6 +46,22 @@ def test_every_unconstrained_point_is_a_physical_body():
     np.testing.assert_array_less(np.abs(again - inertia) / scale, 1e-12)
 
 
+def test_extreme_coordinates_stay_finite_and_physical_in_float32():
+    scene = rb.Scene([rb.Body("a", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0)], ground=rb.Plane(), contacts="all")
+    space = FreeParameters(scene, scene.params(restitution=0.5, friction=0.5, dtype=jnp.float32),
+                           ["mass", "inertia", "restitution", "friction"])
+    for shift in (-30.0, -5.0, 0.0, 5.0, 30.0):
+        z = jax.tree.map(lambda x, s=shift: x + jnp.asarray(s, x.dtype), space.unconstrained())
+        params = space.physical(z)
+        assert params.mass.dtype == jnp.float32
+        for leaf in (params.mass, params.inertia, params.restitution, params.friction):
+            assert np.all(np.isfinite(np.asarray(leaf)))
+        e, mu = float(params.restitution[0]), float(params.friction[0])
+        assert 0.0 <= e <= 1.0 and 0.0 <= mu <= 2.0 and float(params.mass[0]) >= 0.0
+        grads = jax.grad(lambda z: jnp.sum(space.physical(z).inertia) + jnp.sum(space.physical(z).restitution))(z)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree.leaves(grads))
+
+
 def test_free_parameters_round_trip_and_masks():
     bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)]
     scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")

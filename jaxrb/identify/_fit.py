@@ -140,7 +140,8 @@ def fit(
             measurements.
         scene, params: the scene, and the initial guess (free entries) and fixed values.
         free: what to fit: see :class:`FreeParameters` (e.g. ``"restitution"``,
-            ``["mass", "friction"]``, ``{"mass": ["ball"]}``), or a ``FreeParameters``.
+            ``["mass", "friction"]``, ``{"mass": ["ball"]}``), or a ``FreeParameters``
+            (whose own template is then the initial guess).
         data: passed to ``loss``; with ``batched=True`` a pytree whose leaves have a
             leading experiment axis, and the loss is the mean over experiments (vmapped).
         optimizer: an optax optimiser; default :func:`default_optimizer` (Adam, 0.05,

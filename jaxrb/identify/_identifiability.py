@@ -104,6 +104,7 @@ def identifiability(
     data=None,
     batched: bool = False,
     rcond: float | None = None,
+    friction_max: float = 2.0,
 ) -> Identifiability:
     """Sensitivities, identifiable directions and the Gauss-Newton covariance at ``params``.
 
@@ -115,11 +116,12 @@ def identifiability(
         rcond: relative singular values below it are reported unidentifiable. Default
             ``100 sqrt(eps)`` of the dtype: 1.5e-6 in float64, 0.03 in float32 (use
             float64 for this analysis when you can).
+        friction_max: as given to the fit (a free friction must lie below it).
 
     Returns:
         An :class:`Identifiability` report (``print`` it).
     """
-    space = _space(scene, params, free, 2.0)
+    space = _space(scene, params, free, friction_max)
     vector = _objective(residuals, data, batched, jnp.ravel)
     theta = space.to_vector(params)
 
