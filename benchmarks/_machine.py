@@ -6,6 +6,7 @@ import json
 import platform
 import resource
 import subprocess
+import time
 from pathlib import Path
 
 
@@ -47,3 +48,19 @@ def peak_rss_bytes() -> int:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def timed(fn, args, repeats: int) -> float:
+    """Best wall time (s) of ``repeats`` calls of ``fn(*args)``, after one warm-up call.
+
+    Every call ends with ``jax.block_until_ready``, so asynchronous dispatch is timed too.
+    """
+    import jax  # noqa: PLC0415 - only the scripts that time JAX code pay for the import
+
+    jax.block_until_ready(fn(*args))
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -45,7 +45,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model, json_from_python  # noqa: E402
+from _machine import cpu_model, json_from_python, timed  # noqa: E402
 
 G = 9.81
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
@@ -80,16 +80,6 @@ def ball_accuracy(traj):
     apex = z[turn] + vz[turn] ** 2 / (2 * G) - 0.1
     exact = 0.8 ** (2 * np.arange(1, len(apex) + 1))
     return {"apex_rel_error": [float(x) for x in np.abs(apex / exact - 1)]}
-
-
-def timed(fn, args, repeats):
-    jax.block_until_ready(fn(*args))
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, batch_steps, dtype):

@@ -47,20 +47,10 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model, json_from_python, peak_rss_bytes  # noqa: E402
+from _machine import cpu_model, json_from_python, peak_rss_bytes, timed  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
-
-
-def timed(fn, args, repeats):
-    jax.block_until_ready(fn(*args))
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def compiled(fn, *args):
