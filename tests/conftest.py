@@ -65,3 +65,10 @@ def _drop_compiled_programs_if_many():
     if _memory_map_count() > _MAP_COUNT_LIMIT:
         jax.clear_caches()
         gc.collect()
+
+
+def pytest_collection_modifyitems(config, items):
+    """Run the long tests first: pytest-xdist then fills the end of the run with short ones,
+    instead of one worker finishing a long test while the other waits. (The order is the
+    same in every worker, as pytest-xdist requires.)"""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

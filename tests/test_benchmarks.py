@@ -41,6 +41,7 @@ def test_free_body_benchmark_quick_on_two_cpu_devices(tmp_path):
     assert record["devices"] == 2 and (tmp_path / "free_body_2dev.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
 
@@ -63,6 +64,7 @@ def test_work_precision_benchmark_quick(tmp_path):
         assert coarse / fine > 0.6 * 2 ** getattr(rb.integrators, name).order, (name, coarse, fine)
 
 
+@pytest.mark.slow
 def test_contacts_benchmark_quick(tmp_path):
     record = load("contacts").main(["--quick", "--no-peers", "--out", str(tmp_path)])
     results = record["results"]
@@ -73,6 +75,7 @@ def test_contacts_benchmark_quick(tmp_path):
     assert (tmp_path / "contacts.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_gradients_benchmark_quick(tmp_path):
     record = load("gradients").main(["--quick", "--no-plain", "--out", str(tmp_path)])
     assert record["bounce"]["gradient_finite"] and record["bounce"]["ratio_reverse_over_forward"] > 0

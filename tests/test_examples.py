@@ -158,6 +158,7 @@ def _execute_notebook(name: str, tmp_path) -> str:
     return _notebook_text(nb)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["01_free_body.py"])
 def test_notebook_executes(name, tmp_path):
     text = _execute_notebook(name, tmp_path)
@@ -368,6 +369,7 @@ def test_notebook_03_contacts_executes(tmp_path):
     assert re.search(r"^pgs  : the heavy ball sinks up to \S+ m", text, flags=re.M)
 
 
+@pytest.mark.slow
 def test_identification_example_recovers_every_scenario(capsys):
     path = ROOT / "examples" / "identify_parameters.py"
     spec = importlib.util.spec_from_file_location("identify_example", path)
@@ -381,6 +383,7 @@ def test_identification_example_recovers_every_scenario(capsys):
     assert "largest relative error per scenario" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_notebook_04_identification_executes(tmp_path):
     text = _execute_notebook("04_identification.py", tmp_path)
     e_fit = float(re.search(r"e: truth 0.8, fit ([0-9.]+)", text).group(1))

@@ -125,11 +125,13 @@ def identifiability(
     vector = _objective(residuals, data, batched, jnp.ravel)
     theta = space.to_vector(params)
 
-    def r(theta):
-        return jnp.ravel(vector(space.from_vector(theta, params)))
+    @jax.jit
+    def linearise(theta):
+        # Residuals and Jacobian from one forward-mode pass: one compiled program.
+        r = lambda t: jnp.ravel(vector(space.from_vector(t, params)))  # noqa: E731
+        return jax.jacfwd(lambda t: (r(t),) * 2, has_aux=True)(theta)
 
-    jac = np.asarray(jax.jacfwd(r)(theta), dtype=float)
-    res = np.asarray(r(theta), dtype=float)
+    jac, res = (np.asarray(a, dtype=float) for a in linearise(theta))
     theta = np.asarray(theta, dtype=float)
     if rcond is None:
         rcond = 100.0 * float(np.sqrt(np.finfo(np.asarray(params.mass).dtype).eps))
