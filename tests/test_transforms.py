@@ -167,9 +167,8 @@ def test_gradient_at_rest_is_finite():
     state = scene.state(params)
     for integrator in INTEGRATORS:
         step = rb.make_step(scene, integrator, 1e-2)
-        # One jitted program per integrator: compiling the eager grad's separate transposed
-        # rollout segfaulted inside XLA:CPU (jaxlib 0.10.2) in two full CI runs, at this
-        # point of the suite only; alone it passed. The assertion is unchanged.
+        # One jitted program per integrator. (This test was where CI's workers segfaulted
+        # once they ran out of memory mappings; the cause and the fix are in conftest.py.)
         g = jax.jit(jax.grad(lambda s, step=step: pose_loss(rb.rollout(step, params, s, 10)[0])))(step.prepare(state))
         for leaf in jax.tree.leaves(g):
             assert np.all(np.isfinite(leaf))
