@@ -17,7 +17,8 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 
 # One XLA compilation cache for the whole run, shared through the environment by the
 # pytest-xdist workers and by the subprocesses the tests start (examples, notebooks,
-# benchmark scripts), which compile many of the same programs. It is new for every run,
+# benchmark scripts), so a program compiled twice with the same HLO is built once (the gain
+# was not measured separately: small, within the noise of one run). It is new for every run,
 # so no run reuses an earlier run's programs, and it is removed when the run ends.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxrb-test-xla-cache-")
