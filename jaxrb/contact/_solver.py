@@ -149,61 +149,140 @@ def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
     return _apply(bodies, f, jnp.arange(c), local_impulses)
 
 
-def _update(bodies: Bodies, f: Frames, idx, lam, target, mu, active, friction: bool):
-    """One projected Gauss-Seidel update of the slots ``idx`` (one colour; no shared body)."""
-    u = relative_velocity(bodies, f, idx)
-    k = f.delassus[idx]
-    on = active[idx]
-    # Normal: reach u_n = target, keep lambda_n >= 0, and never push past the elastic bound.
-    k_nn = k[:, 0, 0]
-    raw = (target[idx] - u[:, 0]) / k_nn
-    elastic_cap = jnp.maximum(-2.0 * u[:, 0] / k_nn, 0.0)
-    step = jnp.where(raw > 0, jnp.minimum(raw, elastic_cap), raw)
-    new_n = jnp.where(on, jnp.maximum(lam[idx, 0] + step, 0.0), 0.0)
-    d_n = new_n - lam[idx, 0]
-    bodies = _apply(bodies, f, idx, jnp.stack([d_n, jnp.zeros_like(d_n), jnp.zeros_like(d_n)], -1))
-    lam = lam.at[idx, 0].set(new_n)
-    if not friction:
-        return bodies, lam
-    # Friction: a projected-gradient step on the disk |lambda_t| <= mu lambda_n (Coulomb's
-    # cone), with the step 1/k_max, k_max the largest eigenvalue of the 2x2 tangential block.
-    # The step is along -u_t, so a sliding contact's friction opposes its slip (maximal
-    # dissipation); a full K_tt^-1 step would not, and would twist a sliding box. A projected
-    # gradient step with step <= 1/k_max cannot add energy.
-    u = relative_velocity(bodies, f, idx)
-    k_max = _largest_tangential_eigenvalue(k)
-    old_t = lam[idx, 1:]
+class _Colour(eqx.Module):
+    """The slots of the colours, gathered once per solve: leading axes ``(K, W)`` (one colour
+    of ``W`` slots per row). A sweep then scans over these rows, so the loop body reads its
+    slots' data as a slice instead of gathering it by index on every visit."""
+
+    a: Array
+    b: Array
+    inv_mass_a: Array
+    inv_mass_b: Array
+    inv_inertia_a: Array
+    inv_inertia_b: Array
+    r_a: Array
+    r_b: Array
+    basis: Array
+    delassus: Array
+
+
+def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
+    idx = jnp.asarray(colours)
+    a, b = f.body_a[idx], f.body_b[idx]
+    return _Colour(a, b, bodies.inv_mass[a], bodies.inv_mass[b], bodies.inv_inertia[a], bodies.inv_inertia[b],
+                   f.r_a[idx], f.r_b[idx], f.basis[idx], f.delassus[idx])
+
+
+class _Local(eqx.Module):
+    """One colour's bodies' velocities ``(W, 3)`` each, updated in place of the global rows."""
+
+    va: Array
+    wa: Array
+    vb: Array
+    wb: Array
+
+
+def _gather(c: _Colour, velocity, omega) -> _Local:
+    return _Local(velocity[c.a], omega[c.a], velocity[c.b], omega[c.b])
+
+
+def _scatter(c: _Colour, velocity, omega, start: _Local, end: _Local):
+    """Add the colour's velocity changes to the global rows (no two slots share a dynamic body)."""
+    velocity = velocity.at[c.a].add(end.va - start.va).at[c.b].add(end.vb - start.vb)
+    omega = omega.at[c.a].add(end.wa - start.wa).at[c.b].add(end.wb - start.wb)
+    return velocity, omega
+
+
+def _local_velocity(c: _Colour, v: _Local):
+    """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis."""
+    ua = v.va + spatial.cross(v.wa, c.r_a)
+    ub = v.vb + spatial.cross(v.wb, c.r_b)
+    return spatial.matvec(c.basis, ua - ub)
+
+
+def _local_apply(c: _Colour, v: _Local, local_impulse) -> _Local:
+    """``+P`` on A and ``-P`` on B, ``P`` given in the slot basis ``(W, 3)``."""
+    impulse = spatial.matvec(spatial.transpose(c.basis), local_impulse)
+    return _Local(v.va + c.inv_mass_a[:, None] * impulse,
+                  v.wa + spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse)),
+                  v.vb - c.inv_mass_b[:, None] * impulse,
+                  v.wb - spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse)))
+
+
+def _friction_step(c: _Colour, v: _Local, old_t, radius, on):
+    """Friction: a projected-gradient step on the disk ``|lambda_t| <= radius`` (Coulomb's
+    cone), with the step ``1/k_max``, ``k_max`` the largest eigenvalue of the 2x2 tangential
+    block. The step is along ``-u_t``, so a sliding contact's friction opposes its slip
+    (maximal dissipation); a full ``K_tt^-1`` step would not, and would twist a sliding box.
+    A projected-gradient step of length at most ``1/k_max`` cannot add energy.
+    Returns the change of the tangential impulse ``(W, 2)``."""
+    u = _local_velocity(c, v)
+    k_max = _largest_tangential_eigenvalue(c.delassus)
     wanted = old_t - u[:, 1:] / k_max[:, None]
-    radius = mu[idx] * new_n
     norm = spatial.safe_norm(wanted)
     scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
-    d_t = jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
-    bodies = _apply(bodies, f, idx, jnp.concatenate([jnp.zeros_like(d_t[:, :1]), d_t], -1))
-    lam = lam.at[idx, 1:].add(d_t)
-    return bodies, lam
+    return jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
 
 
-def _collision_update(bodies: Bodies, f: Frames, idx, e, mu, eligible, threshold):
-    """Binary collisions of the slots ``idx`` (one colour) that approach faster than ``threshold``.
+def _update(c: _Colour, v: _Local, lam, target, mu, on, friction: bool):
+    """One projected Gauss-Seidel update of one colour's slots; ``lam`` is theirs ``(W, 3)``."""
+    u = _local_velocity(c, v)
+    # Normal: reach u_n = target, keep lambda_n >= 0, and never push past the elastic bound.
+    k_nn = c.delassus[:, 0, 0]
+    raw = (target - u[:, 0]) / k_nn
+    elastic_cap = jnp.maximum(-2.0 * u[:, 0] / k_nn, 0.0)
+    step = jnp.where(raw > 0, jnp.minimum(raw, elastic_cap), raw)
+    new_n = jnp.where(on, jnp.maximum(lam[:, 0] + step, 0.0), 0.0)
+    zero = jnp.zeros_like(new_n)
+    v = _local_apply(c, v, jnp.stack([new_n - lam[:, 0], zero, zero], -1))
+    if not friction:
+        return v, lam.at[:, 0].set(new_n)
+    d_t = _friction_step(c, v, lam[:, 1:], mu * new_n, on)
+    v = _local_apply(c, v, jnp.concatenate([zero[:, None], d_t], -1))
+    return v, jnp.concatenate([new_n[:, None], lam[:, 1:] + d_t], -1)
+
+
+def _collision_update(c: _Colour, v: _Local, e, mu, eligible, threshold):
+    """Binary collisions of one colour's slots that approach faster than ``threshold``.
 
     The seed's impulse from the *current* relative velocity, ``j = -(1 + e) u_n / K_nn``,
     then friction bounded by ``mu j``. Impulses are new each time (never taken back), as in
     a sequence of two-body collisions.
     """
-    u = relative_velocity(bodies, f, idx)
-    k = f.delassus[idx]
-    hit = eligible[idx] & (u[:, 0] < -threshold)
-    j = jnp.where(hit, -(1.0 + e[idx]) * u[:, 0] / k[:, 0, 0], 0.0)
-    bodies = _apply(bodies, f, idx, jnp.stack([j, jnp.zeros_like(j), jnp.zeros_like(j)], -1))
-    u = relative_velocity(bodies, f, idx)
-    k_max = _largest_tangential_eigenvalue(k)
-    wanted = -u[:, 1:] / k_max[:, None]
-    radius = mu[idx] * j
-    norm = spatial.safe_norm(wanted)
-    scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
-    d_t = jnp.where(hit[:, None], wanted * scale[:, None], 0.0)
-    bodies = _apply(bodies, f, idx, jnp.concatenate([jnp.zeros_like(j)[:, None], d_t], -1))
-    return bodies, jnp.concatenate([j[:, None], d_t], -1)
+    u = _local_velocity(c, v)
+    hit = eligible & (u[:, 0] < -threshold)
+    j = jnp.where(hit, -(1.0 + e) * u[:, 0] / c.delassus[:, 0, 0], 0.0)
+    zero = jnp.zeros_like(j)
+    v = _local_apply(c, v, jnp.stack([j, zero, zero], -1))
+    d_t = _friction_step(c, v, jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
+    v = _local_apply(c, v, jnp.concatenate([zero[:, None], d_t], -1))
+    return v, jnp.concatenate([j[:, None], d_t], -1)
+
+
+def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int):
+    """``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot arrays
+    ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites."""
+    idx = jnp.asarray(colours)
+    c = _by_colour(bodies, f, colours)
+    data = jax.tree.map(lambda x: x[idx], slot_data)
+
+    def colour_step(carry, inputs):
+        velocity, omega = carry
+        c_k, data_k, mine = inputs
+        start = _gather(c_k, velocity, omega)
+        end, mine = update(c_k, start, mine, *data_k)
+        return _scatter(c_k, velocity, omega, start, end), mine
+
+    def sweep(carry, _):
+        (velocity, omega), values = carry
+        (velocity, omega), values = jax.lax.scan(colour_step, (velocity, omega), (c, data, values))
+        return ((velocity, omega), values), None
+
+    start = ((bodies.velocity, bodies.angular_velocity), per_slot[idx])
+    ((velocity, omega), values), _ = jax.lax.scan(sweep, start, None, length=iterations)
+    bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
+    # Padding entries of ``colours`` all point at the inert slot C, whose value stays 0.
+    return bodies, per_slot.at[idx].set(values)
 
 
 def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, iterations: int):
@@ -219,15 +298,11 @@ def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, i
     e, mu, eligible = pad1(e, 0.0), pad1(mu, 0.0), pad1(eligible, False)
     total = jnp.zeros((e.shape[0], 3), bodies.velocity.dtype)
 
-    def colour_step(carry, idx):
-        b, total = carry
-        b, impulse = _collision_update(b, f, idx, e, mu, eligible, threshold)
-        return (b, total.at[idx].add(impulse)), None
+    def update(c, v, total, e, mu, eligible):
+        v, impulse = _collision_update(c, v, e, mu, eligible, threshold)
+        return v, total + impulse
 
-    def sweep(carry, _):
-        return jax.lax.scan(colour_step, carry, colours)[0], None
-
-    (bodies, total), _ = jax.lax.scan(sweep, (bodies, total), None, length=iterations)
+    bodies, total = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations)
     return bodies, total[:-1]
 
 
@@ -247,15 +322,10 @@ def pad_slots(target, mu, active, lam0):
 def sweeps(bodies: Bodies, f: Frames, colours, target, mu, active, lam, iterations: int, friction: bool = True):
     """``iterations`` projected Gauss-Seidel sweeps on padded slot arrays; ``lam`` already applied."""
 
-    def colour_step(carry, idx):
-        b, lam = carry
-        return _update(b, f, idx, lam, target, mu, active, friction), None
+    def update(c, v, lam, target, mu, on):
+        return _update(c, v, lam, target, mu, on, friction)
 
-    def sweep(carry, _):
-        return jax.lax.scan(colour_step, carry, colours)[0], None
-
-    (bodies, lam), _ = jax.lax.scan(sweep, (bodies, lam), None, length=iterations)
-    return bodies, lam
+    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations)
 
 
 def solve(
