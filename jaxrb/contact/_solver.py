@@ -188,8 +188,8 @@ def _gather(c: _Colour, velocity, omega) -> _Local:
 
 def _scatter(c: _Colour, velocity, omega, start: _Local, end: _Local):
     """Add the colour's velocity changes to the global rows (no two slots share a dynamic body)."""
-    velocity = velocity.at[c.a].add(end.va - start.va).at[c.b].add(end.vb - start.vb)
-    omega = omega.at[c.a].add(end.wa - start.wa).at[c.b].add(end.wb - start.wb)
+    velocity = velocity.at[c.a].set(end.va).at[c.b].set(end.vb)
+    omega = omega.at[c.a].set(end.wa).at[c.b].set(end.wb)
     return velocity, omega
 
 
