@@ -132,6 +132,8 @@ def test_restitution_from_bounce_heights_with_adam(bounce):
     assert abs(float(result.params.restitution[0]) / 0.8 - 1) < 0.01  # measured: 2e-5
     assert all(_physical(p) for p in result.iterates)
     assert result.loss_history[-1] < result.loss_history[0]
+    with pytest.raises(ValueError, match="only rb.identify.fit_least_squares results"):
+        result.identifiability()  # an optax fit keeps no Jacobian
 
 
 def test_restitution_from_bounce_heights_with_levenberg_marquardt(bounce):
@@ -145,6 +147,33 @@ def test_restitution_from_bounce_heights_with_levenberg_marquardt(bounce):
     assert report.identifiable
     # the truth lies within a few standard errors of the estimate
     assert abs(e - 0.8) < 5 * report.std[0]
+    _assert_same_report(result.identifiability(), report)
+
+
+def _assert_same_report(from_fit, direct):
+    """``FitResult.identifiability`` (chain rule through the maps) against a new linearisation."""
+    assert tuple(from_fit.labels) == tuple(direct.labels)
+    np.testing.assert_allclose(from_fit.values, direct.values, rtol=1e-12)
+    scale = np.max(np.abs(direct.jacobian), axis=0)
+    np.testing.assert_allclose(from_fit.jacobian / scale, direct.jacobian / scale, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(from_fit.std, direct.std, rtol=1e-6)
+    assert len(from_fit.unidentifiable) == len(direct.unidentifiable)
+
+
+def test_report_from_a_fit_refuses_an_inertia_at_the_triangle_limit():
+    """At I1 + I2 = I3 (a flat plate) the log-Cholesky map is flat: no silent inaccuracy."""
+    scene = rb.Scene([rb.Body("plate", mass=1.0, inertia=(0.1, 0.2, 0.3 * (1 - 1e-13)))], gravity=None)
+    params = scene.params(dtype=jnp.float64)
+    space = rb.identify.FreeParameters(scene, params, "inertia")
+    jac = np.random.default_rng(0).standard_normal((20, 6))
+    result = rb.identify.FitResult(params, 0.0, np.zeros(1), True, 1, "", space, residuals=np.zeros(20),
+                                   jacobian=jac)
+    with pytest.raises(ValueError, match="triangle inequality's limit"):
+        result.identifiability()
+    nan = rb.identify.FitResult(params, 0.0, np.zeros(1), True, 1, "", space, residuals=np.zeros(20),
+                                jacobian=np.full((20, 6), np.nan))
+    with pytest.raises(ValueError, match="not finite"):
+        nan.identifiability()
 
 
 # ---------------------------------------------------------- (b) inertia ratios
@@ -237,6 +266,14 @@ def test_mass_from_a_collision():
     assert float(result.params.mass[0]) == 1.0  # fixed
     assert abs(float(result.params.restitution[0]) / 0.9 - 1) < 0.01
     assert all(_physical(p) for p in result.iterates)
+    # The report from the fit's own Jacobian (log mass with a fixed entry, sigmoid e)
+    # against one that differentiates the residuals again.
+    report = result.identifiability()
+    assert report.identifiable and tuple(report.labels) == ("mass[unknown]", "restitution[known-unknown]")
+    assert abs(float(result.params.mass[1]) - 0.4) < 5 * report.std[0]
+    direct = rb.identify.identifiability(lambda p, d: positions(p) - d, scene, result.params,
+                                         {"mass": ["unknown"], "restitution": True}, data=measured)
+    _assert_same_report(report, direct)
 
 
 # --------------------------------------------------------- (d) friction, sliding
@@ -296,6 +333,7 @@ def test_full_inertia_from_known_torques():
     report = rb.identify.identifiability(lambda p, d: gyro(p, 2e-3, 1000) - d, scene, result.params, "inertia",
                                          data=measured)
     assert report.identifiable  # with known torques the scale is determined
+    _assert_same_report(result.identifiability(), report)  # through the log-Cholesky map
 
 
 def test_fit_over_many_experiments_is_vmapped(bounce):

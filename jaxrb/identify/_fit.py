@@ -41,6 +41,10 @@ class FitResult:
         message: why it stopped.
         space: the :class:`FreeParameters` used (labels, masks, maps).
         iterates: every iterate's physical ``Params`` (with ``keep_iterates=True``), else ``None``.
+        residuals: :func:`fit_least_squares` only: ``(m,)`` the residuals at ``params``.
+        jacobian: :func:`fit_least_squares` only: ``(m, n)`` their Jacobian with respect to
+            the unconstrained coordinates (``space.unconstrained()``, flattened) at ``params``,
+            from the fit's last linearisation. :meth:`identifiability` reuses it.
     """
 
     params: Params
@@ -51,6 +55,26 @@ class FitResult:
     message: str
     space: FreeParameters
     iterates: list | None = None
+    residuals: np.ndarray | None = None
+    jacobian: np.ndarray | None = None
+
+    def identifiability(self, rcond: float | None = None):
+        """The :func:`jaxrb.identify.identifiability` report at the fit, without simulating again.
+
+        It converts the fit's last Jacobian to the physical parameters by the chain rule
+        through the parameter maps, ``dr/dtheta = dr/dz (dtheta/dz)^-1``, so it costs no
+        new compilation of the residuals. Only :func:`fit_least_squares` results carry that
+        Jacobian; for an optax :func:`fit`, call ``rb.identify.identifiability(residuals,
+        scene, result.params, free, data=...)``.
+        """
+        from ._identifiability import from_unconstrained_jacobian
+
+        if self.jacobian is None:
+            raise ValueError(
+                "This FitResult carries no Jacobian: only rb.identify.fit_least_squares results do. "
+                "Call rb.identify.identifiability(residuals, scene, result.params, free, data=...) instead."
+            )
+        return from_unconstrained_jacobian(self.space, self.params, self.jacobian, self.residuals, rcond)
 
     def __str__(self) -> str:
         values = np.asarray(self.space.to_vector(self.params))
@@ -308,4 +332,5 @@ def fit_least_squares(
             break
     bar.update(step, cost, final=True)
     z = unravel(jnp.asarray(x, flat.dtype))
-    return FitResult(space.physical(z), cost, np.asarray(history), converged, step, message, space, iterates)
+    return FitResult(space.physical(z), cost, np.asarray(history), converged, step, message, space, iterates,
+                     residuals=r, jacobian=jac)

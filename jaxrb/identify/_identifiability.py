@@ -21,6 +21,7 @@ import dataclasses
 from collections.abc import Callable
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,7 +29,7 @@ from ..scene import Scene
 from ..state import Params
 from ._fit import _objective, _space
 
-__all__ = ["Identifiability", "identifiability"]
+__all__ = ["Identifiability", "identifiability", "from_unconstrained_jacobian"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +133,43 @@ def identifiability(
         return jax.jacfwd(lambda t: (r(t),) * 2, has_aux=True)(theta)
 
     jac, res = (np.asarray(a, dtype=float) for a in linearise(theta))
-    theta = np.asarray(theta, dtype=float)
+    return _report(space, params, np.asarray(theta, dtype=float), jac, res, rcond)
+
+
+def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcond: float | None = None):
+    """The report at ``params`` from ``dr/dz`` ``(m, n)`` in the unconstrained coordinates.
+
+    ``dr/dtheta = dr/dz (dtheta/dz)^-1``, with ``dtheta/dz`` the Jacobian of the parameter
+    maps alone (no simulation). Coordinates that move no free value (fixed entries of a
+    free field) are dropped first, which leaves the square, invertible Jacobian of the
+    per-field bijections.
+    """
+    flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained(params))
+    to_theta = jax.jacfwd(lambda x: space.to_vector(space.physical(unravel(x))))
+    maps = np.asarray(to_theta(flat), dtype=float)
+    jacobian = np.asarray(jacobian, dtype=float)
+    if jacobian.shape[1] != maps.shape[1]:
+        raise ValueError(f"The Jacobian has {jacobian.shape[1]} columns, but the free parameters have "
+                         f"{maps.shape[1]} unconstrained coordinates.")
+    moving = np.any(maps != 0.0, axis=0)
+    square = maps[:, moving]
+    again = "Call rb.identify.identifiability(residuals, scene, params, free, data=...) instead."
+    if not np.all(np.isfinite(jacobian)):
+        raise ValueError(f"The fit's Jacobian is not finite, so it cannot give a report. {again}")
+    if square.shape[0] != square.shape[1]:
+        raise ValueError("A free parameter's map is flat to rounding here (restitution or friction at an "
+                         f"end of its range), so the fit's Jacobian cannot be converted. {again}")
+    # A one-to-one map per entry loses nothing in the division; the inertia's coupled map
+    # does, by its condition number, which is unbounded at the triangle inequality's limit.
+    if np.linalg.cond(square) > 1e10:  # more than ~1e-6 relative would be lost
+        raise ValueError("An inertia sits at the triangle inequality's limit (a flat body, I1 + I2 = I3), "
+                         f"where its log-Cholesky map is flat, so the fit's Jacobian cannot be converted. {again}")
+    jac_theta = np.linalg.solve(square.T, jacobian[:, moving].T).T
+    theta = np.asarray(space.to_vector(params), dtype=float)
+    return _report(space, params, theta, jac_theta, np.asarray(residuals, dtype=float).ravel(), rcond)
+
+
+def _report(space, params: Params, theta, jac, res, rcond) -> Identifiability:
     if rcond is None:
         rcond = 100.0 * float(np.sqrt(np.finfo(np.asarray(params.mass).dtype).eps))
     scale = np.where(np.abs(theta) > 0, np.abs(theta), 1.0)
