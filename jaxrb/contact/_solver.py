@@ -186,8 +186,14 @@ def _gather(c: _Colour, velocity, omega) -> _Local:
     return _Local(velocity[c.a], omega[c.a], velocity[c.b], omega[c.b])
 
 
-def _scatter(c: _Colour, velocity, omega, start: _Local, end: _Local):
-    """Add the colour's velocity changes to the global rows (no two slots share a dynamic body)."""
+def _scatter(c: _Colour, velocity, omega, end: _Local):
+    """Write the colour's new velocities into the global rows.
+
+    No two slots of a colour share a dynamic body, so each dynamic row is written once; the
+    static rows (ground, padding) may be written by several slots, all with their unchanged
+    value (zero inverse mass). Writing values, not adding differences, keeps float32 from
+    rounding each update twice (``v + ((v + dv) - v)``).
+    """
     velocity = velocity.at[c.a].set(end.va).at[c.b].set(end.vb)
     omega = omega.at[c.a].set(end.wa).at[c.b].set(end.wb)
     return velocity, omega
@@ -269,9 +275,8 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     def colour_step(carry, inputs):
         velocity, omega = carry
         c_k, data_k, mine = inputs
-        start = _gather(c_k, velocity, omega)
-        end, mine = update(c_k, start, mine, *data_k)
-        return _scatter(c_k, velocity, omega, start, end), mine
+        end, mine = update(c_k, _gather(c_k, velocity, omega), mine, *data_k)
+        return _scatter(c_k, velocity, omega, end), mine
 
     def sweep(carry, _):
         (velocity, omega), values = carry
