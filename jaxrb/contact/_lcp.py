@@ -55,9 +55,9 @@ def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
     reg = a_mat + eps * eye
     offset = u_n - target - a_mat @ lam_n  # w(lambda) = A lambda + offset
 
-    def merit(lam):
+    def merit(lam, w):
         """``|min(lambda, w)|^2`` over the active slots: zero exactly at the LCP's solution."""
-        return jnp.sum(jnp.where(active, jnp.minimum(lam, a_mat @ lam + offset), 0.0) ** 2)
+        return jnp.sum(jnp.where(active, jnp.minimum(lam, w), 0.0) ** 2)
 
     def iterate(lam, _):
         w = a_mat @ lam + offset
@@ -70,7 +70,7 @@ def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
         # float32 one step can swing the impulses far off (a 5-box stack blew up at 1.5 s).
         # A step that does not lower the merit is refused, so the solve never does worse
         # than the sweeps that warm-start it; near the solution Newton's steps all pass.
-        return jnp.where(merit(new) <= merit(lam), new, lam), None
+        return jnp.where(merit(new, a_mat @ new + offset) <= merit(lam, w), new, lam), None
 
     lam, _ = jax.lax.scan(iterate, jnp.where(active, jnp.maximum(lam_n, 0.0), 0.0), None, length=iterations)
     return lam
