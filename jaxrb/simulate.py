@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from .contact import ContactSettings
+from .contact._penetration import penetration, thinnest_size
 from .contact._step import contact_step, initial_impulses
 from .integrators import Integrator
 from .scene import Scene
@@ -38,6 +39,7 @@ class Step(eqx.Module):
     dt: float = eqx.field(static=True)
     debug: bool = eqx.field(static=True, default=False)
     contact: ContactSettings = eqx.field(static=True, default=ContactSettings())
+    max_penetration: float = eqx.field(static=True, default=math.inf)
 
     def prepare(self, state: State) -> State:
         """Put a state in the form this step carries (idempotent): the integrator's form
@@ -61,15 +63,30 @@ class Step(eqx.Module):
         else:
             new = self.integrator.step(self.scene, params, state, self.dt, derived)
         if self.debug:
-            bad = ~jnp.all(jnp.isfinite(new.position)) | ~jnp.all(jnp.isfinite(new.orientation))
-            bad = bad | ~jnp.all(jnp.isfinite(new.velocity)) | ~jnp.all(jnp.isfinite(new.angular_momentum))
-            new = eqx.error_if(
-                new,
-                bad,
-                "jaxrb: the state became NaN or infinite in this step. Check for a blow-up "
-                "(reduce dt, or use a more stable integrator) or for invalid params.",
-            )
+            new = _checked(self, new)
         return new
+
+
+def _checked(step: Step, new: State) -> State:
+    """``new``, with the debug mode's run-time checks attached (``equinox.error_if``)."""
+    bad = ~jnp.all(jnp.isfinite(new.position)) | ~jnp.all(jnp.isfinite(new.orientation))
+    bad = bad | ~jnp.all(jnp.isfinite(new.velocity)) | ~jnp.all(jnp.isfinite(new.angular_momentum))
+    new = eqx.error_if(
+        new,
+        bad,
+        "jaxrb: the state became NaN or infinite in this step. Check for a blow-up "
+        "(reduce dt, or use a more stable integrator) or for invalid params.",
+    )
+    if step.scene.contact_pairs and math.isfinite(step.max_penetration):
+        new = eqx.error_if(
+            new,
+            penetration(step.scene, new) > step.max_penetration,
+            "jaxrb: bodies overlap deeper than max_penetration after this step (a contact blow-up "
+            "or a tunnel). Reduce dt, raise ContactSettings(iterations=...), use "
+            "ContactSettings(solver='exact') for heavy bodies resting on light ones, check that "
+            "the bodies did not start overlapping, or raise make_step(max_penetration=...).",
+        )
+    return new
 
 
 def make_step(
@@ -79,6 +96,7 @@ def make_step(
     *,
     debug: bool = False,
     contact: ContactSettings | None = None,
+    max_penetration: float | None = None,
 ) -> Step:
     """The step function of ``scene`` advanced by ``integrator`` with time step ``dt`` (s).
 
@@ -90,7 +108,11 @@ def make_step(
 
     With ``debug=True`` the step raises (also inside ``jit``, through
     ``equinox.error_if``) as soon as the state turns NaN or infinite, instead of letting
-    the NaN propagate silently.
+    the NaN propagate silently, and, in a scene with contacts, as soon as two bodies
+    overlap deeper than ``max_penetration`` (m; default half the smallest radius or half
+    extent of the bodies in contact pairs). That check costs one more narrow-phase pass
+    per step (:func:`jaxrb.contact.penetration`); without ``debug`` neither check is
+    compiled.
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"make_step needs an rb.Scene, got {type(scene).__name__}.")
@@ -114,7 +136,26 @@ def make_step(
         contact = ContactSettings()
     if not isinstance(contact, ContactSettings):
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
-    return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact)
+    return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact,
+                max_penetration=_penetration_limit(scene, debug, max_penetration))
+
+
+def _penetration_limit(scene: Scene, debug: bool, max_penetration) -> float:
+    """The debug mode's overlap limit, m (``inf``: not checked)."""
+    if max_penetration is None:
+        thinnest = thinnest_size(scene)
+        return 0.5 * thinnest if debug and thinnest is not None else math.inf
+    if not debug:
+        raise ValueError("max_penetration is checked by the debug mode only: pass debug=True as well.")
+    if not scene.contact_pairs:
+        raise ValueError("max_penetration needs a scene with contact pairs (Scene(..., contacts=...)).")
+    try:
+        limit = float(max_penetration)
+    except (TypeError, ValueError):
+        raise ValueError(f"max_penetration must be a positive distance in metres, got {max_penetration!r}.") from None
+    if not limit > 0:  # inf is allowed: no overlap check
+        raise ValueError(f"max_penetration must be a positive distance in metres, got {limit}.")
+    return limit
 
 
 @eqx.filter_jit

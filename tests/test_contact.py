@@ -426,6 +426,52 @@ def test_exact_solver_stack_in_pure_float32_holds():
     assert result["finite"] and result["drift"] <= 1e-3, result  # measured 5.8e-7 m
 
 
+# ============================================================ overlap, debug mode
+
+
+def test_penetration_is_the_deepest_overlap():
+    """Two balls (radii 0.1 and 0.2) and the ground: overlaps by the distances of centres."""
+    bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Sphere(0.2), mass=1.0)]
+    scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
+    params = scene.params()
+    depth = jax.jit(lambda s: rb.contact.penetration(scene, s))
+    cases = [  # (centres, deepest overlap): a-b overlap 0.3 - |ab|, a-ground 0.1 - z_a, b-ground 0.2 - z_b
+        ([[0.0, 0.0, 0.5], [0.25, 0.0, 0.5]], 0.05),
+        ([[0.0, 0.0, 0.02], [0.3, 0.0, 0.17]], 0.08),
+        ([[0.0, 0.0, 0.1], [1.0, 0.0, 0.19]], 0.01),
+        ([[0.0, 0.0, 0.5], [1.0, 0.0, 0.5]], 0.0),
+    ]
+    for position, expected in cases:
+        assert float(depth(scene.state(params, position=position))) == pytest.approx(expected, abs=1e-12)
+    assert float(rb.contact.penetration(rb.Scene(bodies), rb.Scene(bodies).state(position=[[0, 0, 0]] * 2))) == 0.0
+
+
+def test_debug_mode_reports_a_deep_overlap_inside_jit():
+    """A ball started with its centre on the ground (0.1 m deep; the split impulse removes
+    only part of that per step) trips the check; a normal bounce does not."""
+    scene = ball_scene()
+    params = scene.params(restitution=0.8)
+    loud = rb.make_step(scene, SPLIT, 1e-3, debug=True)
+    assert loud.max_penetration == 0.05  # half the ball's radius
+    run = jax.jit(lambda s: rb.rollout(loud, params, s, 500)[0])
+    final = jax.block_until_ready(run(loud.prepare(scene.state(params, position=(0.0, 0.0, 0.5)))))
+    assert float(final.position[0, 2]) > 0.1  # it bounced, and nothing was reported
+    with pytest.raises(Exception, match="overlap deeper than max_penetration"):
+        jax.block_until_ready(run(loud.prepare(scene.state(params, position=(0.0, 0.0, 0.0)))))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"max_penetration": 0.01}, "pass debug=True"), ({"debug": True, "max_penetration": -1.0}, "positive distance"),
+     ({"debug": True, "max_penetration": "deep"}, "positive distance")],
+)
+def test_bad_max_penetration_is_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        rb.make_step(ball_scene(), SPLIT, 1e-3, **kwargs)
+    with pytest.raises(ValueError, match="needs a scene with contact pairs"):
+        rb.make_step(rb.Scene([rb.Body("b", shape=BOX, mass=1.0)]), SPLIT, 1e-3, debug=True, max_penetration=0.1)
+
+
 # ================================================================ no NaN, gradients
 
 

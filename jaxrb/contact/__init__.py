@@ -9,10 +9,12 @@ the contact stage configured by :class:`ContactSettings` (passed to :func:`jaxrb
 * ``_solver``: projected Gauss-Seidel with restitution targets and Coulomb's cone, every
   update unable to add energy;
 * ``_lcp``: the exact normal solve (semismooth Newton on the seed's LCP);
+* ``_penetration``: the deepest overlap at a state (what ``make_step(debug=True)`` checks);
 * ``_step``: kick-solve-drift-kick with the time of impact located inside the step, and
   the split-impulse penetration correction.
 """
 
 from ._impulse import collision_impulse as collision_impulse
+from ._penetration import penetration as penetration
 from ._settings import ContactSettings as ContactSettings
 from ._step import resolve_impacts as resolve_impacts
