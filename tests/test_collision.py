@@ -376,6 +376,26 @@ def test_gap_and_normal_match_the_support_function_reference(pair):
     assert np.all(np.where(c.active, c.gap, np.inf) >= sd[:, None] - 1e-12)
 
 
+def test_box_box_separation_has_the_signed_distance_roots():
+    """The separating-axis value the time-of-impact search uses: the signed distance where
+    boxes overlap, a positive lower bound of it where they are apart, zero at touching."""
+    from jaxrb.collision._box import box_box_separation
+
+    box, crate = SHAPES["box"][0], SHAPES["crate"][0]
+    sep = jax.jit(jax.vmap(lambda *x: box_box_separation(box, x[0], x[1], crate, x[2], x[3])))
+    (pa, qa, pb, qb), refs = sampled_cases("box", "crate")
+    sd = np.array([r[0] for r in refs])
+    value = np.asarray(sep(pa, qa, pb, qb))
+    inside = sd < 0
+    np.testing.assert_allclose(value[inside], sd[inside], rtol=0, atol=1e-12)
+    assert np.all((value[~inside] > 0) & (value[~inside] <= sd[~inside] + 1e-12))
+    # Resting flat on the crate (depth 0), overlapping by 1 mm, and 1 mm above it.
+    poses = [_box_on_crate(0.3, depth) for depth in (0.0, 1e-3, -1e-3)]
+    flat = np.asarray(sep(*(np.array(x) for x in zip(*poses, strict=True)), np.zeros((3, 3)),
+                          np.tile(IDENTITY, (3, 1))))
+    np.testing.assert_allclose(flat, [0.0, -1e-3, 1e-3], rtol=0, atol=1e-12)
+
+
 def _check_on_surface(distance, deepest, kind):
     """On the surface (1e-12 m); a capsule's extra slot is an end sphere's point, which may lie inside the capsule."""
     if kind == "capsule":

@@ -20,10 +20,12 @@ import numpy as np
 
 from .. import spatial
 from ..collision import Contact, collide, concatenate_contacts, max_contacts
+from ..collision._box import box_box_separation
 from ..scene import GROUND, Scene
+from ..shapes import Box
 from ..state import State
 
-__all__ = ["Layout", "build_layout", "detect"]
+__all__ = ["Layout", "build_layout", "detect", "pair_separations"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,6 +115,46 @@ def _shape_poses(scene: Scene, state: State):
     return state.position + spatial.quat_rotate(state.orientation, offsets), state.orientation
 
 
+def _group_poses(layout: Layout, g: _Group, positions, orientations):
+    """Poses of a group's A and B bodies, ``(G, 3)`` and ``(G, 4)``; ``None`` for the ground."""
+    ia = np.asarray(g.body_a)
+    if g.body_b[0] == layout.num_bodies:  # the ground has no pose
+        return positions[ia], orientations[ia], None, None
+    ib = np.asarray(g.body_b)
+    return positions[ia], orientations[ia], positions[ib], orientations[ib]
+
+
+def _group_contacts(g: _Group, pa, qa, pb, qb, margin: float) -> Contact:
+    """The group's narrow phase, vmapped over its pairs: fields ``(G, K, ...)``."""
+    if pb is None:
+        return jax.vmap(lambda p, q: collide(g.shape_a, p, q, g.shape_b, None, None, margin))(pa, qa)
+    return jax.vmap(lambda *x: collide(g.shape_a, x[0], x[1], g.shape_b, x[2], x[3], margin))(pa, qa, pb, qb)
+
+
+def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) -> jax.Array:
+    """A signed separation of each contact pair ``(P,)``, m, for locating impacts in time.
+
+    Negative when the pair overlaps, zero exactly when it touches, positive when apart, so
+    its roots along a motion are the instants of contact. It is the pair's smallest active
+    gap (``margin`` when no slot is within it), except for box-box pairs, which use the
+    separating axes alone (:func:`jaxrb.collision._box.box_box_separation`; a lower bound
+    of the distance when apart): the root search evaluates this many times, and the
+    clipped box-box manifold is the most expensive narrow phase to run and to compile.
+    """
+    positions, orientations = _shape_poses(scene, state)
+    gaps = jnp.full((scene.num_contact_pairs,), margin, dtype=state.position.dtype)
+    for g in layout.groups:
+        pa, qa, pb, qb = _group_poses(layout, g, positions, orientations)
+        if isinstance(g.shape_a, Box) and isinstance(g.shape_b, Box):
+            sep = jax.vmap(lambda *x, g=g: box_box_separation(g.shape_a, x[0], x[1], g.shape_b, x[2], x[3]))(
+                pa, qa, pb, qb)
+        else:
+            contact = _group_contacts(g, pa, qa, pb, qb, margin)
+            sep = jnp.min(jnp.where(contact.active, contact.gap, margin), axis=-1)
+        gaps = gaps.at[np.asarray(g.pair_index)].set(sep.astype(gaps.dtype))
+    return gaps
+
+
 def detect(scene: Scene, layout: Layout, state: State, margin: float) -> Contact:
     """All ``C`` contact slots of the scene at ``state``: a :class:`Contact` with ``(C, ...)`` fields.
 
@@ -121,15 +163,7 @@ def detect(scene: Scene, layout: Layout, state: State, margin: float) -> Contact
     positions, orientations = _shape_poses(scene, state)
     parts = []
     for g in layout.groups:
-        ia = np.asarray(g.body_a)
-        pa, qa = positions[ia], orientations[ia]
-        if g.body_b[0] == layout.num_bodies:  # the ground has no pose
-            contact = jax.vmap(lambda p, q, g=g: collide(g.shape_a, p, q, g.shape_b, None, None, margin))(pa, qa)
-        else:
-            ib = np.asarray(g.body_b)
-            contact = jax.vmap(
-                lambda p, q, pb, qb, g=g: collide(g.shape_a, p, q, g.shape_b, pb, qb, margin)
-            )(pa, qa, positions[ib], orientations[ib])
+        contact = _group_contacts(g, *_group_poses(layout, g, positions, orientations), margin)
         parts.append(Contact(
             point=contact.point.reshape(-1, 3),
             normal=contact.normal.reshape(-1, 3),

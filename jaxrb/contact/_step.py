@@ -42,7 +42,7 @@ from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import Scene
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
-from ._layout import Layout, build_layout, detect
+from ._layout import Layout, build_layout, detect, pair_separations
 from ._lcp import solve_exact
 from ._settings import ContactSettings
 from ._solver import Bodies, Frames, collisions, frames, normal_velocities, solve
@@ -235,11 +235,8 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
 
 
 def _pair_gaps(ctx: _Ctx, state: State) -> jax.Array:
-    """Signed distance of each contact pair ``(P,)``, m (inactive slots count as ``margin``)."""
-    contact = detect(ctx.scene, ctx.layout, state, ctx.margin)
-    gap = jnp.where(contact.active, contact.gap, ctx.margin)
-    pair = np.asarray(ctx.layout.pair, dtype=np.int32)
-    return jax.ops.segment_min(gap, pair, num_segments=ctx.scene.num_contact_pairs)
+    """Signed separation of each contact pair ``(P,)``, m (see :func:`pair_separations`)."""
+    return pair_separations(ctx.scene, ctx.layout, state, ctx.margin)
 
 
 def _free_pose(params: Params, state: State, acceleration, omega, t) -> State:
