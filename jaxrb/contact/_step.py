@@ -19,13 +19,16 @@ Without contacts this is Stoermer-Verlet: exact for constant gravity, second ord
 Resting on the ground, the drift velocity is exactly zero, so nothing creeps; the velocity
 reported *between* steps is then ``h/2 g`` (leapfrog's staggered velocity), not zero.
 
-**Time of impact.** If a pair that is apart at the start would pass through contact during
-the step, the step is split at the first such instant ``tau h``: the free motion to it,
-the impact (Newton's law on the velocities *at* contact), then the rest of the step. The
-instant is the root of the pair's signed distance along the free motion, found by a fixed
-number of Illinois (regula falsi) iterations and finished by one Newton step whose
-derivative is the implicit-function theorem's, ``d tau = -dD / D'``: gradients account
-for the time of impact. Other impacts in the same step are handled at its start.
+**Time of impact.** If a pair that is apart at the start overlaps at the end of the step's
+free flight (constant acceleration and spin), the step is split at the first instant
+``tau h`` of contact: the free motion to it, the impact (Newton's law on the velocities
+*at* contact), then the rest of the step. The instant is the root of the pair's signed
+separation along the free motion (the separating axes alone for box pairs, which have the
+same roots as the distance and cost a fraction of the manifold), bracketed by the two
+ends, found by a fixed number of Illinois (regula falsi) iterations and finished by one
+Newton step whose derivative is the implicit-function theorem's, ``d tau = -dD / D'``:
+gradients account for the time of impact. Other impacts in the same step are handled at
+its start.
 """
 
 from __future__ import annotations
@@ -246,16 +249,21 @@ def _free_pose(params: Params, state: State, acceleration, omega, t) -> State:
     return dataclasses.replace(state, position=position, orientation=orientation, rotation=None)
 
 
-def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate, start_gap) -> jax.Array:
+def _free_flight(ctx: _Ctx, params: Params, state: State):
+    """The constant acceleration and spin of :func:`_free_pose` at ``state``."""
+    force, _ = wrench(ctx.scene, params, state)
+    return linear_acceleration(params, force), angular_velocity(params, state)
+
+
+def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate, start_gap, end_gap) -> jax.Array:
     """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches.
 
-    ``start_gap`` is the candidate pairs' smallest gap at ``tau = 0`` (already known). The
-    narrow phase is traced twice only (the root search's body and the final Newton step),
-    which keeps the compile time down: the first pass of the search evaluates ``tau = 1``.
+    ``start_gap > 0`` and ``end_gap < 0`` are the candidate pairs' smallest separations at
+    ``tau = 0`` and ``tau = 1`` (already known): they bracket the root. The separations are
+    traced twice only (the root search's body and the final Newton step), which keeps the
+    compile time down.
     """
-    force, _ = wrench(ctx.scene, params, state)
-    acceleration = linear_acceleration(params, force)
-    omega = angular_velocity(params, state)
+    acceleration, omega = _free_flight(ctx, params, state)
     big = jnp.asarray(jnp.finfo(state.position.dtype).max / 4, state.position.dtype)
 
     def distance(tau):
@@ -265,31 +273,26 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate, start_ga
     dtype = state.position.dtype
     frozen = jax.lax.stop_gradient
 
-    def illinois(carry, first):
+    def illinois(carry, _):
         a, fa, b, fb, side = carry
-        c = (a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0)
-        c = jnp.where(first, 1.0, jnp.clip(c, a, b))
+        c = jnp.clip((a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0), a, b)
         fc = frozen(distance(c))
-        left = (fc * fa > 0) & ~first  # root in [c, b]
+        left = fc * fa > 0  # root in [c, b]
         a2, fa2 = jnp.where(left, c, a), jnp.where(left, fc, fa)
         b2, fb2 = jnp.where(left, b, c), jnp.where(left, fb, fc)
         # Illinois: halve the stale end's value when the same side moves twice.
         fb2 = jnp.where(left & (side > 0), 0.5 * fb2, fb2)
-        fa2 = jnp.where(~left & (side < 0) & ~first, 0.5 * fa2, fa2)
-        side = jnp.where(first, 0, jnp.where(left, 1, -1)).astype(jnp.int32)
-        return (a2, fa2, b2, fb2, side), fc
+        fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
+        return (a2, fa2, b2, fb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
 
-    zero = jnp.zeros((), dtype)
-    start = (zero, frozen(start_gap).astype(dtype), jnp.ones((), dtype), zero, jnp.zeros((), jnp.int32))
-    first = jnp.arange(ctx.settings.toi_iterations + 1) == 0
-    (a, fa, b, fb, _), values = jax.lax.scan(illinois, start, first)
-    end_gap = values[0]
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+    start = (zero, frozen(start_gap).astype(dtype), one, frozen(end_gap).astype(dtype), jnp.zeros((), jnp.int32))
+    (a, fa, b, fb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
     root = frozen(jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b))
     # One Newton step at the root: its value is the root, its derivative the implicit one.
     value, slope = jax.jvp(distance, (root,), (jnp.ones_like(root),))
     slope = jnp.where(slope < 0, slope, -1.0)
-    tau = root - value / slope
-    return jnp.where(end_gap < 0, jnp.clip(tau, 0.0, 1.0), 1.0)
+    return jnp.clip(root - value / slope, 0.0, 1.0)
 
 
 def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
@@ -302,20 +305,12 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     if not settings.time_of_impact:
         return _rematerialised(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived)
 
-    # Which pairs, apart at the start, would close within the step (at the kicked velocity)?
-    contact = detect(scene, ctx.layout, state, ctx.margin)
-    force, torque = wrench(scene, params, state)
-    velocity = state.velocity + 0.5 * dt * linear_acceleration(params, force)
-    momentum = state.angular_momentum + 0.5 * dt * torque
-    bodies, position = _solver_bodies(params, state, velocity, momentum)
-    f = frames(bodies, ctx.layout.body_a, ctx.layout.body_b, contact.point, contact.normal, position)
-    pair = np.asarray(ctx.layout.pair, dtype=np.int32)
-    pair_gap = jax.ops.segment_min(jnp.where(contact.active, contact.gap, ctx.margin), pair,
-                                   num_segments=scene.num_contact_pairs)
-    apart = pair_gap > settings.penetration_slop
-    closing = contact.active & (contact.gap + dt * _normal_velocity(bodies, f) < 0)
-    candidate = apart & (jax.ops.segment_max(closing.astype(jnp.int32), pair,
-                                             num_segments=scene.num_contact_pairs) > 0)
+    # Which pairs, apart at the start, overlap at the end of the step's free flight? Their
+    # separations (cheap: no box-box manifold) at both ends bracket the time of impact.
+    acceleration, omega = _free_flight(ctx, params, state)
+    start_sep = _pair_gaps(ctx, state)
+    end_sep = _pair_gaps(ctx, _free_pose(params, state, acceleration, omega, jnp.asarray(dt, state.position.dtype)))
+    candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
 
     # Split the step at the impact: [0, tau h], then [tau h, h], which starts with the
     # impact (the sub-step's impact pass: the pair touches there and approaches). One scan
@@ -324,8 +319,9 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     # next step's, at its start.
     any_hit = jnp.any(candidate)
     dtype = state.position.dtype
-    start_gap = jnp.min(jnp.where(candidate, pair_gap, ctx.margin))
-    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate, start_gap),
+    start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
+    end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
+    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate, start_gap, end_gap),
                        lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
