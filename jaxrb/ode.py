@@ -429,7 +429,8 @@ def solve_with_impacts(
     if isinstance(max_impacts, bool) or not isinstance(max_impacts, int) or max_impacts < 1:
         raise ValueError(f"max_impacts must be a positive integer, got {max_impacts!r}.")
     settings = contact if contact is not None else ContactSettings()
-    # A margin beyond any distance in the scene: every slot's gap is its true distance.
+    # A margin beyond any distance in the scene: every pair's separation is its true distance
+    # (box pairs: the separating axes' lower bound, which has the same roots).
     ctx = _Ctx(scene, layout_of(scene), None, dataclasses.replace(settings, margin=1e6), 1.0)
     dtype = state.position.dtype
     t1 = jnp.asarray(t1, dtype)
