@@ -176,6 +176,36 @@ def test_report_from_a_fit_refuses_an_inertia_at_the_triangle_limit():
         nan.identifiability()
 
 
+def test_report_from_a_fit_at_a_flat_map_relinearises():
+    """Measured moments just beyond a flat plate's (I3 > I1 + I2): the fit ends at the triangle
+    inequality's limit, where the chain rule cannot convert its Jacobian, and the report
+    comes from a new linearisation in the physical parameters instead."""
+    from jaxrb.identify._identifiability import FlatMapError, from_unconstrained_jacobian
+
+    scene = rb.Scene([rb.Body("plate", mass=1.0, inertia=(0.2, 0.2, 0.2))], gravity=None)
+    rows, cols = np.triu_indices(3)
+    measured = np.zeros((20, 6))
+    measured[:, [0, 3, 5]] = [0.1, 0.2, 0.301]  # xx, yy, zz: infeasible by 1e-3
+    measured += 1e-4 * np.random.default_rng(4).standard_normal(measured.shape)
+
+    def residuals(params, data):
+        return (params.inertia[0][rows, cols][None, :] - data).ravel()
+
+    guess = scene.params(dtype=jnp.float64)
+    result = rb.identify.fit_least_squares(residuals, scene, guess, "inertia", data=measured, progress=False)
+    with pytest.raises(FlatMapError):  # the chain rule is refused here ...
+        from_unconstrained_jacobian(result.space, result.params, result.jacobian, result.residuals)
+    report = result.identifiability()  # ... so this linearised again
+    # (FreeParameters(scene, result.params, "inertia") would refuse a limit as a starting point.)
+    direct = rb.identify.identifiability(residuals, scene, result.params, result.space, data=measured)
+    np.testing.assert_array_equal(report.jacobian, direct.jacobian)
+    np.testing.assert_array_equal(report.std, direct.std)
+    # The linear residuals' Jacobian selects the six entries, whatever the point.
+    names = ["xx", "xy", "xz", "yy", "yz", "zz"]  # the residuals' (triu) order
+    selection = np.eye(6)[:, [names.index(label.split(".")[-1]) for label in report.labels]]
+    np.testing.assert_allclose(report.jacobian, np.tile(selection, (20, 1)), rtol=0, atol=1e-12)
+
+
 # ---------------------------------------------------------- (b) inertia ratios
 
 

@@ -45,6 +45,9 @@ class FitResult:
         jacobian: :func:`fit_least_squares` only: ``(m, n)`` their Jacobian with respect to
             the unconstrained coordinates (``space.unconstrained()``, flattened) at ``params``,
             from the fit's last linearisation. :meth:`identifiability` reuses it.
+        relinearise: :func:`fit_least_squares` only: ``relinearise(params, rcond)``, the
+            :func:`jaxrb.identify.identifiability` report of the fit's residuals and data
+            at ``params`` (a new linearisation in the physical parameters).
     """
 
     params: Params
@@ -57,24 +60,34 @@ class FitResult:
     iterates: list | None = None
     residuals: np.ndarray | None = None
     jacobian: np.ndarray | None = None
+    relinearise: Callable | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def identifiability(self, rcond: float | None = None):
-        """The :func:`jaxrb.identify.identifiability` report at the fit, without simulating again.
+        """The :func:`jaxrb.identify.identifiability` report at the fit.
 
         It converts the fit's last Jacobian to the physical parameters by the chain rule
-        through the parameter maps, ``dr/dtheta = dr/dz (dtheta/dz)^-1``, so it costs no
-        new compilation of the residuals. Only :func:`fit_least_squares` results carry that
-        Jacobian; for an optax :func:`fit`, call ``rb.identify.identifiability(residuals,
-        scene, result.params, free, data=...)``.
+        through the parameter maps, ``dr/dtheta = dr/dz (dtheta/dz)^-1``, so it usually costs
+        no simulation and no new compilation of the residuals. Where a map is flat at the
+        fit (restitution or friction at an end of its range, an inertia at the triangle
+        inequality's limit) that division would lose the answer, and the report comes from
+        a new linearisation in the physical parameters instead (one more compilation).
+        Only :func:`fit_least_squares` results carry what this needs; for an optax
+        :func:`fit`, whose loss is not a residual vector, call
+        ``rb.identify.identifiability(residuals, scene, result.params, free, data=...)``.
         """
-        from ._identifiability import from_unconstrained_jacobian
+        from ._identifiability import FlatMapError, from_unconstrained_jacobian
 
         if self.jacobian is None:
             raise ValueError(
                 "This FitResult carries no Jacobian: only rb.identify.fit_least_squares results do. "
                 "Call rb.identify.identifiability(residuals, scene, result.params, free, data=...) instead."
             )
-        return from_unconstrained_jacobian(self.space, self.params, self.jacobian, self.residuals, rcond)
+        try:
+            return from_unconstrained_jacobian(self.space, self.params, self.jacobian, self.residuals, rcond)
+        except FlatMapError:
+            if self.relinearise is None:
+                raise
+            return self.relinearise(self.params, rcond)
 
     def __str__(self) -> str:
         values = np.asarray(self.space.to_vector(self.params))
@@ -332,5 +345,10 @@ def fit_least_squares(
             break
     bar.update(step, cost, final=True)
     z = unravel(jnp.asarray(x, flat.dtype))
+    def relinearise(at: Params, rcond: float | None):
+        from ._identifiability import identifiability
+
+        return identifiability(residuals, scene, at, space, data=data, batched=batched, rcond=rcond)
+
     return FitResult(space.physical(z), cost, np.asarray(history), converged, step, message, space, iterates,
-                     residuals=r, jacobian=jac)
+                     residuals=r, jacobian=jac, relinearise=relinearise)

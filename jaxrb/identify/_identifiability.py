@@ -29,7 +29,12 @@ from ..scene import Scene
 from ..state import Params
 from ._fit import _objective, _space
 
-__all__ = ["Identifiability", "identifiability", "from_unconstrained_jacobian"]
+__all__ = ["Identifiability", "identifiability", "from_unconstrained_jacobian", "FlatMapError"]
+
+
+class FlatMapError(ValueError):
+    """A parameter map is flat at the fit, so a Jacobian in the unconstrained coordinates
+    cannot be converted to the physical parameters: linearise in them instead."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,7 +149,11 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
     free field) are dropped first, which leaves the square, invertible Jacobian of the
     per-field bijections.
     """
-    flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained(params))
+    again = "Call rb.identify.identifiability(residuals, scene, params, free, data=...) instead."
+    try:
+        flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained(params))
+    except ValueError as err:  # e.g. a fit that ended exactly at the triangle inequality's limit
+        raise FlatMapError(f"A free value lies where its parameter map has no inverse ({err}) {again}") from err
     to_theta = jax.jacfwd(lambda x: space.to_vector(space.physical(unravel(x))))
     maps = np.asarray(to_theta(flat), dtype=float)
     jacobian = np.asarray(jacobian, dtype=float)
@@ -153,16 +162,15 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
                          f"{maps.shape[1]} unconstrained coordinates.")
     moving = np.any(maps != 0.0, axis=0)
     square = maps[:, moving]
-    again = "Call rb.identify.identifiability(residuals, scene, params, free, data=...) instead."
     if not np.all(np.isfinite(jacobian)):
         raise ValueError(f"The fit's Jacobian is not finite, so it cannot give a report. {again}")
     if square.shape[0] != square.shape[1]:
-        raise ValueError("A free parameter's map is flat to rounding here (restitution or friction at an "
+        raise FlatMapError("A free parameter's map is flat to rounding here (restitution or friction at an "
                          f"end of its range), so the fit's Jacobian cannot be converted. {again}")
     # A one-to-one map per entry loses nothing in the division; the inertia's coupled map
     # does, by its condition number, which is unbounded at the triangle inequality's limit.
     if np.linalg.cond(square) > 1e10:  # more than ~1e-6 relative would be lost
-        raise ValueError("An inertia sits at the triangle inequality's limit (a flat body, I1 + I2 = I3), "
+        raise FlatMapError("An inertia sits at the triangle inequality's limit (a flat body, I1 + I2 = I3), "
                          f"where its log-Cholesky map is flat, so the fit's Jacobian cannot be converted. {again}")
     jac_theta = np.linalg.solve(square.T, jacobian[:, moving].T).T
     theta = np.asarray(space.to_vector(params), dtype=float)
