@@ -255,15 +255,15 @@ def _free_flight(ctx: _Ctx, params: Params, state: State):
     return linear_acceleration(params, force), angular_velocity(params, state)
 
 
-def _time_of_impact(ctx: _Ctx, params: Params, state: State, candidate, start_gap, end_gap) -> jax.Array:
+def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, start_gap, end_gap) -> jax.Array:
     """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches.
 
-    ``start_gap > 0`` and ``end_gap < 0`` are the candidate pairs' smallest separations at
-    ``tau = 0`` and ``tau = 1`` (already known): they bracket the root. The separations are
-    traced twice only (the root search's body and the final Newton step), which keeps the
-    compile time down.
+    ``flight`` is :func:`_free_flight` at ``state``. ``start_gap > 0`` and ``end_gap < 0``
+    are the candidate pairs' smallest separations at ``tau = 0`` and ``tau = 1`` (already
+    known): they bracket the root. The separations are traced twice only (the root search's
+    body and the final Newton step), which keeps the compile time down.
     """
-    acceleration, omega = _free_flight(ctx, params, state)
+    acceleration, omega = flight
     big = jnp.asarray(jnp.finfo(state.position.dtype).max / 4, state.position.dtype)
 
     def distance(tau):
@@ -307,9 +307,9 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
 
     # Which pairs, apart at the start, overlap at the end of the step's free flight? Their
     # separations (cheap: no box-box manifold) at both ends bracket the time of impact.
-    acceleration, omega = _free_flight(ctx, params, state)
+    flight = _free_flight(ctx, params, state)
     start_sep = _pair_gaps(ctx, state)
-    end_sep = _pair_gaps(ctx, _free_pose(params, state, acceleration, omega, jnp.asarray(dt, state.position.dtype)))
+    end_sep = _pair_gaps(ctx, _free_pose(params, state, *flight, jnp.asarray(dt, state.position.dtype)))
     candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
 
     # Split the step at the impact: [0, tau h], then [tau h, h], which starts with the
@@ -321,7 +321,7 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     dtype = state.position.dtype
     start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
     end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
-    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, candidate, start_gap, end_gap),
+    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap),
                        lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
