@@ -33,9 +33,13 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float
 
 from .. import spatial
+
+#: The name (``jax.ad_checkpoint.checkpoint_name``) of a solve's impulses and velocities.
+SOLUTION = "jaxrb_contact_solution"
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
            "relative_velocity", "normal_velocities", "collisions"]
@@ -362,6 +366,73 @@ def solve(
         ``(bodies, lam)``: velocities after the impulses, and the accumulated impulses.
     """
     target, mu, active, lam = pad_slots(target, mu, active, lam0)
-    bodies = apply_impulses(bodies, f, lam)
-    bodies, lam = sweeps(bodies, f, colours, target, mu, active, lam, iterations, friction)
+    velocity, omega, lam = _pgs(iterations, friction, bodies, f, colours, target, mu, active, lam)
+    bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     return bodies, lam[:-1]
+
+
+@jax.custom_jvp
+def _pgs(iterations: int, friction: bool, bodies: Bodies, f: Frames, colours, target, mu, active, lam):
+    """The sweeps of :func:`solve` on padded slots, from ``lam`` (not yet applied to ``bodies``):
+    the velocities and spins after them and the accumulated impulses ``(C + 1, 3)``."""
+
+    def run(_):
+        start = apply_impulses(bodies, f, lam)
+        end, impulses = sweeps(start, f, colours, target, mu, active, lam, iterations, friction)
+        return end.velocity, end.angular_velocity, impulses
+
+    def idle(_):
+        return bodies.velocity, bodies.angular_velocity, jnp.zeros_like(lam)
+
+    # Nothing to solve (a body in flight): skipped at run time, unless vmapped.
+    return jax.lax.cond(jnp.any(active), run, idle, None)
+
+
+_pgs = jax.custom_jvp(_pgs.fun, nondiff_argnums=(0, 1))
+
+
+@_pgs.defjvp
+def _pgs_jvp(iterations, friction, primals, tangents):
+    """The derivative of the sweeps with their Jacobian frozen at the solution.
+
+    One sweep is a map ``lam -> G(lam, theta)`` (``theta``: velocities, masses, frames,
+    targets, ``mu``), and ``iterations`` of them unroll to ``d lam_k = A d lam_(k-1) + B d
+    theta`` with ``A = dG/d lam`` and ``B = dG/d theta`` taken at each iterate. Here both are
+    taken at the last iterate, where the sweeps have converged (``lam* = G(lam*)``), so the
+    recursion is the same with constant ``A`` (a dense ``3(C+1)`` square, from one batched
+    sweep) and one ``B d theta`` (one tangent sweep). This is exact where the iterates have
+    reached the solution's contact states (sticking, sliding, separated) and differs from
+    the unrolled derivative by the iterates' distance to it otherwise. Reverse mode then
+    crosses one sweep and ``iterations`` small matrix products instead of every sweep's
+    stored intermediates (the ball's gradient: see ``benchmarks/gradients.py``). The
+    warm start's tangent ``d lam_0`` is carried as in the unrolled recursion (``A^k d lam_0``).
+    """
+    bodies, f, colours, target, mu, active, _ = primals
+    d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
+    # Named, so that a rematerialising step (``_step._rematerialised``) keeps the solution
+    # instead of running the sweeps again in reverse mode.
+    velocity, omega, lam = checkpoint_name(_pgs(iterations, friction, *primals), SOLUTION)
+
+    def sweep(lam_in, bodies, f, target, mu):
+        start = apply_impulses(bodies, f, lam_in)
+        return sweeps(start, f, colours, target, mu, active, lam_in, 1, friction)[1]
+
+    def run(_):
+        shape = lam.shape
+        a_mat = jax.jacfwd(lambda x: sweep(x.reshape(shape), bodies, f, target, mu).reshape(-1))(lam.reshape(-1))
+        _, b_vec = jax.jvp(lambda *theta: sweep(lam, *theta), (bodies, f, target, mu),
+                           (d_bodies, d_f, d_target, d_mu))
+        d_lam, b_vec = d_lam0.reshape(-1), b_vec.reshape(-1)
+        for _ in range(iterations):
+            d_lam = a_mat @ d_lam + b_vec
+        d_lam = d_lam.reshape(shape)
+        _, d_end = jax.jvp(apply_impulses, (bodies, f, lam), (d_bodies, d_f, d_lam))
+        return d_end.velocity, d_end.angular_velocity, d_lam
+
+    def idle(_):
+        return d_bodies.velocity, d_bodies.angular_velocity, jnp.zeros_like(lam)
+
+    # ``run`` under ``jax.checkpoint``: its linearisation's residuals (the sweep's, ``A``)
+    # would otherwise be zero-filled and copied by the idle branch at every step in flight.
+    tangent = jax.lax.cond(jnp.any(active), jax.checkpoint(run), idle, None)
+    return (velocity, omega, lam), tangent

@@ -48,7 +48,7 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect, pair_separations
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import Bodies, Frames, collisions, frames, normal_velocities, solve
+from ._solver import SOLUTION, Bodies, Frames, collisions, frames, normal_velocities, solve
 
 __all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
 
@@ -162,8 +162,8 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     # Skipped at run time when nothing approaches that fast (resting stacks), unless vmapped.
     hit = jax.lax.cond(
         jnp.any(closing & (u_start < -settings.restitution_threshold)),
-        lambda b: collisions(b, f, colours, e, mu, closing, settings.restitution_threshold,
-                             settings.impact_iterations)[0],
+        jax.checkpoint(lambda b: collisions(b, f, colours, e, mu, closing, settings.restitution_threshold,
+                                            settings.impact_iterations)[0]),
         lambda b: b, start)
     velocity = hit.velocity[: scene.num_bodies] + kick_v
     momentum = _omega_to_momentum(params, state, hit.angular_velocity, start.angular_velocity,
@@ -204,8 +204,11 @@ def _rematerialised(ctx: _Ctx, params: Params, state: State, h, lam0, derived, b
     """:func:`_regular` under ``jax.checkpoint``: reverse mode recomputes the sub-step
     instead of storing its intermediates (every solver sweep's). Measured on the 1000-step
     bouncing ball (``benchmarks/gradients.py``'s scene): the gradient ran in 292 ms instead
-    of 643 and compiled in 29 s instead of 47, with the same value to the last digit."""
-    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce))(state)
+    of 643 and compiled in 29 s instead of 47, with the same value to the last digit. The
+    solvers' solutions (named ``SOLUTION``) are kept, so the recomputation does not run
+    their sweeps again."""
+    keep = jax.checkpoint_policies.save_only_these_names(SOLUTION)
+    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce), policy=keep)(state)
 
 
 def resolve_impacts(scene: Scene, params: Params, state: State, settings: ContactSettings | None = None,
@@ -321,8 +324,10 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     dtype = state.position.dtype
     start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
     end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
-    tau = jax.lax.cond(any_hit, lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap),
-                       lambda: jnp.ones((), dtype))
+    # Checkpointed branches (here and for the impacts): a cond's linearisation zero-fills the
+    # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
+    search = jax.checkpoint(lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap))
+    tau = jax.lax.cond(any_hit, search, lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
     def part(carry, inputs):
