@@ -210,7 +210,10 @@ def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: b
         return (s, k), None
 
     def segment(carry, _):
-        carry, _ = jax.lax.scan(advance, carry, None, length=save_every)
+        if save_every == 1:  # no inner scan of length 1: its residuals would be stacked twice
+            carry, _ = advance(carry, None)
+        else:
+            carry, _ = jax.lax.scan(advance, carry, None, length=save_every)
         return carry, carry[0]
 
     if checkpoint:
