@@ -41,6 +41,17 @@ def test_free_body_benchmark_quick_on_two_cpu_devices(tmp_path):
     assert record["devices"] == 2 and (tmp_path / "free_body_2dev.png").stat().st_size > 0
 
 
+def test_kernel_count_benchmark_quick(tmp_path):
+    load("kernels").main(["--quick", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "kernels_free.json").read_text())
+    forward, reverse = record["forward"], record["reverse"]
+    assert forward["kernels_per_step"] > 0
+    # The reverse pass runs the forward steps and their transposes: more kernels, some marked T.
+    assert reverse["kernels_per_step"] > forward["kernels_per_step"]
+    assert any(key.startswith("T ") for key in reverse["by_source"])
+    assert abs(sum(reverse["by_source"].values()) - reverse["kernels_per_step"]) < 1e-9
+
+
 @pytest.mark.slow
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
