@@ -385,3 +385,85 @@ def test_invalid_integrator_options():
         rb.integrators.ImplicitGyroscopic(stages=0)
     with pytest.raises(ValueError, match="permutation"):
         rb.integrators.SymplecticSplitting(axes=(0, 0, 1))
+
+
+# ------------------------------------------------------------ the splitting's derivative
+
+
+def _splitting_rotation_by_matrices(moments, principal, orientation, l_world, dt, axes=(0, 1, 2)):
+    """The DLM composition written out again (Rodrigues matrices, a Python loop), to
+    differentiate by plain autodiff as the reference for the closed-form tangent."""
+
+    def qmul(p, q):
+        return jnp.concatenate([p[:1] * q[:1] - p[1:] @ q[1:], p[0] * q[1:] + q[0] * p[1:] + jnp.cross(p[1:], q[1:])])
+
+    def one(moments, principal, q, l_world):
+        q = qmul(q, principal)
+        # The library's own frame change (its extension off the unit sphere fixes d/dq there).
+        momentum = spatial.quat_rotate_inverse(q, l_world)
+        outer, middle, inner = axes
+        for axis, fraction in zip((outer, middle, inner, middle, outer), (0.5, 0.5, 1.0, 0.5, 0.5), strict=True):
+            e = jnp.eye(3)[axis]
+            angle = fraction * dt * momentum[axis] / moments[axis]
+            skew = jnp.cross(jnp.eye(3), jnp.broadcast_to(e, (3, 3)))  # skew @ x = e x x; Rot(e, -angle) below
+            turn_back = jnp.eye(3) - jnp.sin(angle) * skew + (1 - jnp.cos(angle)) * skew @ skew
+            momentum = turn_back @ momentum
+            q = qmul(q, jnp.concatenate([jnp.cos(angle / 2)[None], jnp.sin(angle / 2) * e]))
+        q = qmul(q, principal * jnp.array([1.0, -1.0, -1.0, -1.0]))
+        return q / jnp.linalg.norm(q)
+
+    return jax.vmap(one, in_axes=(0, 0, 0, 0))(moments, principal, orientation, l_world)
+
+
+@pytest.mark.parametrize("axes", [(0, 1, 2), (2, 0, 1)])
+def test_splitting_closed_form_tangent_matches_autodiff_through_the_sub_rotations(axes):
+    """The splitting's rotation has a hand-written tangent (one (4, 11) Jacobian instead of
+    a five-step loop, for a cheaper reverse pass). Its value, forward and reverse Jacobians
+    with respect to every input (principal moments and frames, attitude, L, dt), and a
+    second derivative equal those of plain autodiff through the composition written out
+    with rotation matrices. Measured: 1e-15 (values and Jacobians), 1e-16 (Hessian)."""
+    rng = np.random.default_rng(7)
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
+    moments = jnp.asarray(rng.uniform(0.2, 3.0, (3, 3)))
+    principal = jnp.asarray(unit(rng.normal(size=(3, 4))))
+    orientation = jnp.asarray(unit(rng.normal(size=(3, 4))))
+    l_world = jnp.asarray(rng.normal(size=(3, 3)) * 4.0)
+    args = (moments, principal, orientation, l_world, jnp.asarray(0.3))
+    splitting = rb.integrators.SymplecticSplitting(axes=axes)
+
+    def ours(moments, principal, orientation, l_world, dt):
+        return splitting.free_rotation((moments, principal), orientation, l_world, dt)
+
+    def reference_(*a):
+        return _splitting_rotation_by_matrices(*a, axes=axes)
+
+    np.testing.assert_allclose(ours(*args), reference_(*args), rtol=0, atol=1e-14)
+    argnums = tuple(range(5))
+    for jac in (jax.jacfwd, jax.jacrev):
+        for got, want in zip(jac(ours, argnums)(*args), jac(reference_, argnums)(*args), strict=True):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    second = lambda f: jax.hessian(lambda l: f(moments, principal, orientation, l, args[4])[1, 2])(l_world)  # noqa: E731
+    np.testing.assert_allclose(second(ours), second(reference_), rtol=0, atol=1e-12)
+
+
+def test_splitting_tangent_in_float32_is_finite_and_close():
+    """Float32 robustness of the closed-form tangent: a tumbling box (0.4 rad per step) gives
+    a finite reverse-mode gradient of a 20-step rollout, within 1e-3 of float64 relative to
+    its largest entry (measured 3e-6)."""
+    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)])
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 0.05)
+
+    def grad(dtype):
+        params = scene.params(dtype=dtype)
+        state = scene.state(params, angular_velocity=(1.0, 2.0, 8.0), dtype=dtype)
+
+        def loss(inertia, l0):
+            end, _ = rb.rollout(step, params.replace(inertia=inertia), state.replace(angular_momentum=l0), 20)
+            return jnp.sum(end.orientation * jnp.asarray([[1.0, 2.0, 3.0, 4.0]], dtype))
+
+        return jax.grad(loss, argnums=(0, 1))(params.inertia, state.angular_momentum)
+
+    g32, g64 = grad(jnp.float32), grad(jnp.float64)
+    for a, b in zip(g32, g64, strict=True):
+        assert np.all(np.isfinite(np.asarray(a)))
+        np.testing.assert_allclose(np.asarray(a, np.float64), b, rtol=0, atol=1e-3 * float(np.max(np.abs(b))))
