@@ -28,7 +28,7 @@ What it measures
 
 How to run (from the repository root)
     python benchmarks/kernels.py                  # the ball, 1000 steps
-    python benchmarks/kernels.py --scene stack --steps 200 --depth 8
+    python benchmarks/kernels.py --scene stack --depth 8   # 10 steps: the profiler records every PGS kernel
     python benchmarks/kernels.py --quick          # CI smoke run, temp dir
 
 It prints a table and writes ``kernels_<scene>.json`` to ``--out`` (default
@@ -156,7 +156,7 @@ def print_table(scene: str, record: dict, top: int):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="ball", choices=["ball", "stack", "free"])
-    p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 200)")
+    p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 10)")
     p.add_argument("--depth", type=int, default=10, help="op_name parts kept when grouping")
     p.add_argument("--top", type=int, default=25)
     p.add_argument("--float32", action="store_true")
@@ -167,7 +167,7 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     if args.quick:
         args.scene, args.steps = "free", 20
-    steps = args.steps or (200 if args.scene == "stack" else 1000)
+    steps = args.steps or (10 if args.scene == "stack" else 1000)
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -27,101 +26,10 @@ def _rotate_about_principal_axis(q, momentum, axis, angle):
     """
     half = 0.5 * angle
     q = spatial.quat_multiply(q, jnp.concatenate([jnp.cos(half)[None], jnp.sin(half) * axis]))
-    return q, _turn_back(momentum, axis, angle)
-
-
-def _turn_back(vectors, axis, angle):
-    """``Rot(axis, -angle) v`` for each row ``v`` of ``vectors`` ``(..., 3)`` (Rodrigues)."""
-    axis = jnp.broadcast_to(axis, vectors.shape)
     cos_full, sin_full = jnp.cos(angle), jnp.sin(angle)
-    along = spatial.dot(axis, vectors)[..., None] * axis
-    return cos_full * vectors - sin_full * spatial.cross(axis, vectors) + (1.0 - cos_full) * along
-
-
-def _sub_flows(axes: tuple[int, int, int], dtype):
-    """The Strang composition's five (one-hot axis ``(5, 3)``, fraction of the step ``(5,)``)."""
-    outer, middle, inner = axes
-    order = (outer, middle, inner, middle, outer)
-    return jnp.eye(3, dtype=dtype)[jnp.array(order)], jnp.array([0.5, 0.5, 1.0, 0.5, 0.5], dtype=dtype)
-
-
-def _scan_sub_rotations(axes, q, momentum, moments, dt):
-    """The five sub-rotations in a scan: the final ``q`` and, stacked, each one's output
-    ``(q (5, 4), P (5, 3), angle (5,))``."""
-
-    def sub_flow(carry, axis_and_fraction):
-        q, momentum = carry
-        axis, fraction = axis_and_fraction
-        angle = fraction * dt * spatial.dot(axis, momentum) / spatial.dot(axis, moments)
-        q, momentum = _rotate_about_principal_axis(q, momentum, axis, angle)
-        return (q, momentum), (q, momentum, angle)
-
-    # A scan, not five unrolled rotations: fused into one kernel, XLA:CPU recomputed the
-    # chain's shared terms exponentially (each extra rotation ~5x slower, the vmapped
-    # step 20x slower than RK4).
-    (q, _), outputs = jax.lax.scan(sub_flow, (q, momentum), _sub_flows(axes, q.dtype))
-    return q, outputs
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _sub_rotations(axes, q, momentum, moments, dt):
-    """The five sub-rotations ``q R_a R_b R_c R_b R_a`` of one body over ``dt`` (s).
-
-    ``q`` ``(4,)``: principal frame to world; ``momentum`` ``(3,)``: body momentum in the
-    principal frame, kg m^2/s; ``moments`` ``(3,)``: principal moments, kg m^2. Returns
-    the new ``q`` (the momentum's own update is not needed: ``L`` is constant).
-    """
-    return _scan_sub_rotations(axes, q, momentum, moments, dt)[0]
-
-
-@_sub_rotations.defjvp
-def _sub_rotations_jvp(axes, primals, tangents):
-    """The tangent of the five sub-rotations as one explicit ``(4, 11)`` Jacobian.
-
-    With ``x = (q, P, I, dt)`` (11,), the ``k``-th rotation, by ``th_k = f_k dt P[e_k] /
-    I[e_k]`` about ``e_k``, maps ``(q, P) -> (q r_k, Rot_k P)`` with ``r_k = (cos th_k/2,
-    sin th_k/2 e_k)`` and ``Rot_k = Rot(e_k, -th_k)``; its Jacobian is::
-
-        dq' = [r_k]_R dq + 1/2 q' (0, e_k) d th_k
-        dP' = Rot_k dP   - (e_k x P')      d th_k
-        d th_k = f_k / I[e_k] (dt dP[e_k] + P[e_k] d dt) - th_k / I[e_k] dI[e_k]
-
-    (``[r]_R``: right multiplication by ``r``; ``P[e_k]`` is unchanged by the rotation).
-    Each ``(11, 11)`` Jacobian depends only on its rotation's output, which the primal scan
-    returns; their product is four small matrix products. Reverse mode then transposes one
-    matrix-vector product instead of differentiating a five-step loop. Measured with
-    ``benchmarks/kernels.py --scene free`` (1000 steps): 110 kernels per step forward and
-    reverse against 200, and the gradient 14% faster (interleaved timings in one process).
-    """
-    q, momentum, moments, dt = primals
-    dtype = q.dtype
-    axes_k, fractions = _sub_flows(axes, dtype)
-    q_new, (qs, momenta, angles) = _scan_sub_rotations(axes, q, momentum, moments, dt)
-
-    def jacobian(axis, fraction, q_next, p_next, angle):
-        moment = spatial.dot(axis, moments)
-        r = jnp.concatenate([jnp.cos(0.5 * angle)[None], jnp.sin(0.5 * angle) * axis])
-        right = spatial.quat_multiply(jnp.eye(4, dtype=dtype), jnp.broadcast_to(r, (4, 4))).T  # q r = right @ q
-        turn = _turn_back(jnp.eye(3, dtype=dtype), axis, angle).T  # Rot_k
-        # d th_k / d(P, I, dt) (7,)
-        d_angle = jnp.concatenate([(fraction * dt / moment) * axis, -(angle / moment) * axis,
-                                   (fraction * spatial.dot(axis, p_next) / moment)[None]])
-        dq_dangle = 0.5 * spatial.quat_multiply(q_next, jnp.concatenate([jnp.zeros(1, dtype), axis]))
-        dp_dangle = -spatial.cross(axis, p_next)
-        q_rows = jnp.concatenate([right, jnp.outer(dq_dangle, d_angle)], axis=1)
-        p_rows = jnp.concatenate([jnp.zeros((3, 4), dtype), jnp.outer(dp_dangle, d_angle)], axis=1)
-        p_rows = p_rows.at[:, 4:7].add(turn)
-        rest = jnp.eye(4, 11, 7, dtype=dtype)
-        return jnp.concatenate([q_rows, p_rows, rest])
-
-    jacobians = jax.vmap(jacobian)(axes_k, fractions, qs, momenta, angles)  # (5, 11, 11)
-    # Products as element-wise sums, not dots: exact on every backend, and on XLA:CPU a
-    # fused reduction costs a fraction of a library matmul call at these sizes.
-    product = jacobians[4, :4]
-    for k in (3, 2, 1, 0):
-        product = jnp.sum(product[:, :, None] * jacobians[k][None], axis=1)
-    x_dot = jnp.concatenate([t.reshape(-1) for t in tangents])
-    return q_new, jnp.sum(product * x_dot[None], axis=1)
+    along = spatial.dot(axis, momentum) * axis
+    momentum = cos_full * momentum - sin_full * spatial.cross(axis, momentum) + (1.0 - cos_full) * along
+    return q, momentum
 
 
 class SymplecticSplitting(Integrator):
@@ -172,17 +80,33 @@ class SymplecticSplitting(Integrator):
 
     def free_rotation(self, principal_frames, orientation, angular_momentum, dt: float):
         """Torque-free attitude flow over ``dt`` at constant world ``L``; ``(N, 4)``."""
-        dt = jnp.asarray(dt, orientation.dtype)
+        outer, middle, inner = self.axes
+        order = (outer, middle, inner, middle, outer)
+        axes = jnp.eye(3, dtype=orientation.dtype)[jnp.array(order)]  # (5, 3) one-hot
+        fractions = jnp.array([0.5, 0.5, 1.0, 0.5, 0.5], dtype=orientation.dtype)
 
         def rotate(moments, principal, q, l_world):
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
             momentum = spatial.quat_rotate_inverse(q, l_world)
-            q = _sub_rotations(self.axes, q, momentum, moments, dt)
+
+            def sub_flow(carry, axis_and_fraction):
+                q, momentum = carry
+                axis, fraction = axis_and_fraction
+                angle = fraction * dt * spatial.dot(axis, momentum) / spatial.dot(axis, moments)
+                return _rotate_about_principal_axis(q, momentum, axis, angle), None
+
+            # A scan, not five unrolled rotations: fused into one kernel, XLA:CPU recomputed
+            # the chain's shared terms exponentially (each extra rotation ~5x slower, the
+            # vmapped step 20x slower than RK4).
+            # Checkpointed: reverse mode stores the carry of each rotation, not its ~20
+            # intermediates (one stacked buffer each), and recomputes it (ball's gradient -8%).
+            flow = jax.checkpoint(sub_flow, prevent_cse=False)
+            (q, _), _ = jax.lax.scan(flow, (q, momentum), (axes, fractions))
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
             return spatial.quat_normalize(q)
 
         moments, principal = principal_frames
-        return jax.vmap(rotate, in_axes=(0, 0, 0, 0))(moments, principal, orientation, angular_momentum)
+        return jax.vmap(rotate)(moments, principal, orientation, angular_momentum)
 
     def step(self, scene, params: Params, state: State, dt: float, derived=None) -> State:
         principal_frames = self.precompute(params) if derived is None else derived
