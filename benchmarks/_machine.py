@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import platform
 import resource
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -19,6 +21,22 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def record_header(script: str, argv) -> dict:
+    """The start of a results record: when (UTC), the command that reproduces it, and where.
+
+    ``script`` is the file name in ``benchmarks/``; ``argv`` the arguments given to ``main``
+    (``None``: the process's own).
+    """
+    import jax
+
+    args = sys.argv[1:] if argv is None else argv
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(["python", f"benchmarks/{script}", *args]),
+        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__},
+    }
 
 
 def json_from_python(python: str, code: str, marker: str, timeout: int = 3600) -> dict:

@@ -32,7 +32,6 @@ It prints a table and writes ``gradients.json`` and ``gradients.png`` to ``--out
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import sys
@@ -47,7 +46,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model, json_from_python, peak_rss_bytes, timed  # noqa: E402
+from _machine import json_from_python, peak_rss_bytes, record_header, timed  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
@@ -221,9 +220,7 @@ def main(argv=None):
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": "python benchmarks/gradients.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__},
+        **record_header("gradients.py", argv),
         "dtype": str(jnp.dtype(dtype)),
     }
     record["bounce"] = bounce(args.steps, args.repeats, dtype)

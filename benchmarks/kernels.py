@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import datetime
 import glob
 import json
 import re
@@ -53,7 +52,7 @@ import jax.numpy as jnp
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model  # noqa: E402
+from _machine import record_header  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 #: Profiler events that wrap kernels (or are bookkeeping) rather than being kernels.
@@ -171,9 +170,7 @@ def main(argv=None):
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": "python benchmarks/kernels.py " + " ".join(sys.argv[1:] if argv is None else argv),
-        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__},
+        **record_header("kernels.py", argv),
         "scene": args.scene, "steps": steps, "dtype": "float32" if args.float32 else "float64",
         **measure(args.scene, steps, args.depth),
     }
