@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
+    "components",
     "safe_norm",
     "safe_normalize",
     "cross",
@@ -70,13 +71,23 @@ def _sum_last(x: Array) -> Array:
     YNNPACK kernels that are several times slower than fused element-wise code
     (benchmarks/free_body.py). Unrolling keeps the whole step one fused loop.
     """
-    n = x.shape[-1]
-    if n > 4:
+    if x.shape[-1] > 4:
         return jnp.sum(x, axis=-1)
-    total = x[..., 0]
-    for i in range(1, n):
-        total = total + x[..., i]
-    return total
+    first, *rest = components(x)
+    for c in rest:
+        first = first + c
+    return first
+
+
+def components(x: Float[ArrayLike, "... n"]) -> list[Array]:
+    """The ``n`` components of ``x`` along its last axis, each of shape ``(...)``.
+
+    One ``unstack``, whose transpose in reverse mode is one ``stack``. Indexing each
+    component (``x[..., i]``) transposes to one ``pad`` per component instead, and
+    XLA:CPU keeps those as separate kernels: 37 of the bouncing ball's ~275 reverse-pass
+    kernels a step were such pads (benchmarks/README.md).
+    """
+    return jnp.unstack(jnp.asarray(x), axis=-1)
 
 
 def dot(a: Float[ArrayLike, "... n"], b: Float[ArrayLike, "... n"]) -> Float[Array, "..."]:
@@ -86,16 +97,9 @@ def dot(a: Float[ArrayLike, "... n"], b: Float[ArrayLike, "... n"]) -> Float[Arr
 
 def cross(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """Cross product ``a x b`` over the last axis."""
-    a = jnp.asarray(a)
-    b = jnp.asarray(b)
-    return jnp.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
+    ax, ay, az = components(a)
+    bx, by, bz = components(b)
+    return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
 def safe_norm(
@@ -132,9 +136,8 @@ def skew(w: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3 3"]:
 
     ``[[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]``.
     """
-    w = jnp.asarray(w)
-    z = jnp.zeros_like(w[..., 0])
-    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+    wx, wy, wz = components(w)
+    z = jnp.zeros_like(wx)
     return jnp.stack(
         [
             jnp.stack([z, -wz, wy], axis=-1),
@@ -197,10 +200,8 @@ def identity_quat(shape: tuple[int, ...] = (), dtype=None) -> Float[Array, "... 
 
 def quat_multiply(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``p q`` (apply ``q`` first, then ``p``)."""
-    p = jnp.asarray(p)
-    q = jnp.asarray(q)
-    pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
-    qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    pw, px, py, pz = components(p)
+    qw, qx, qy, qz = components(q)
     return jnp.stack(
         [
             pw * qw - px * qx - py * qy - pz * qz,
@@ -214,8 +215,8 @@ def quat_multiply(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) ->
 
 def quat_conjugate(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """``q* = (w, -x, -y, -z)``: the inverse of a unit quaternion."""
-    q = jnp.asarray(q)
-    return jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
+    w, x, y, z = components(q)
+    return jnp.stack([w, -x, -y, -z], axis=-1)
 
 
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
@@ -232,11 +233,11 @@ def quat_rotate(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> F
     Uses the expanded form ``v + 2 w (u x v) + 2 u x (u x v)`` with ``u = (x, y, z)``,
     which costs two cross products instead of two Hamilton products.
     """
-    q = jnp.asarray(q)
     v = jnp.asarray(v)
-    u = q[..., 1:]
+    w, x, y, z = components(q)
+    u = jnp.stack([x, y, z], axis=-1)
     t = 2.0 * cross(u, v)
-    return v + q[..., :1] * t + cross(u, t)
+    return v + w[..., None] * t + cross(u, t)
 
 
 def quat_rotate_inverse(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
@@ -246,8 +247,7 @@ def quat_rotate_inverse(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3
 
 def quat_to_matrix(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3 3"]:
     """Rotation matrix ``A`` of a unit quaternion, so that ``A v = q (0, v) q*``."""
-    q = jnp.asarray(q)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    w, x, y, z = components(q)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
