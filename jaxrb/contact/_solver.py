@@ -33,6 +33,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float
 
@@ -412,8 +413,13 @@ def _pgs_jvp(iterations, friction, primals, tangents):
     bodies, f, colours, target, mu, active, _ = primals
     d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
     # Named, so that a rematerialising step (``_step._rematerialised``) keeps the solution
-    # instead of running the sweeps again in reverse mode.
-    velocity, omega, lam = checkpoint_name(_pgs(iterations, friction, *primals), SOLUTION)
+    # instead of running the sweeps again in reverse mode. Packed into one (B + B + C + 1, 3)
+    # array: a rollout stacks each saved array every step (one kernel each, and a cond
+    # zero-fills them every step its other branch is taken).
+    velocity, omega, lam = _pgs(iterations, friction, *primals)
+    rows = np.cumsum([velocity.shape[0], omega.shape[0]])
+    packed = checkpoint_name(jnp.concatenate([velocity, omega, lam]), SOLUTION)
+    velocity, omega, lam = jnp.split(packed, rows)
 
     def sweep(lam_in, bodies, f, target, mu):
         start = apply_impulses(bodies, f, lam_in)
