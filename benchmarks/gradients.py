@@ -6,8 +6,9 @@ What it measures
       the sum of the heights over the trajectory. Times: the jitted forward rollout, the
       reverse-mode gradient with respect to everything in ``Params`` and the initial
       ``State`` (``jax.grad``), and the forward-mode Jacobian with respect to
-      ``(e, mu, mass)`` (``jax.jacfwd``); each the best of ``--repeats`` calls after a
-      warm-up, with its compile time. The ratio gradient / forward is the figure of merit.
+      ``(e, mu, mass)`` (``jax.jacfwd``), with their compile times. The three are timed in
+      turn over 40 interleaved rounds after a warm-up; the ratio of the minima (and, beside
+      it, of the medians) gradient / forward is the figure of merit.
     * ``free_body_long``: a tumbling box under gravity, h = 1 ms, ``--long-steps`` steps
       (default 1e5), the gradient of the final pose with respect to the inertia and the
       initial state, through ``rollout(..., checkpoint=True, save_every=k)`` with
@@ -66,6 +67,28 @@ def memory_bytes(exe) -> int | None:
                - analysis.alias_size_in_bytes)
 
 
+#: The ball's programs take milliseconds, and one process's calls of the same program vary
+#: by up to 2x on the 2-core machine (bursts of slow calls), so a best of three sequential
+#: calls made the committed ratio swing between 4x and 7x from run to run. They are timed
+#: in this many interleaved rounds instead (forward, reverse, Jacobian, forward, ...).
+BOUNCE_ROUNDS = 40
+
+
+def interleaved(programs: dict, rounds: int) -> dict[str, np.ndarray]:
+    """Wall times (s) of ``rounds`` calls of each ``name: (fn, args)``, taken in turn, one
+    round after another, after one warm-up call each: a slow spell of the machine then
+    falls on all of them alike, and the ratios of minima or medians compare like with like."""
+    for fn, args in programs.values():
+        jax.block_until_ready(fn(*args))
+    times = {name: [] for name in programs}
+    for _ in range(rounds):
+        for name, (fn, args) in programs.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            times[name].append(time.perf_counter() - t0)
+    return {name: np.asarray(t) for name, t in times.items()}
+
+
 def bounce(steps, repeats, dtype):
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
@@ -84,14 +107,18 @@ def bounce(steps, repeats, dtype):
     forward, c_fwd = compiled(loss, params, state)
     reverse, c_rev = compiled(jax.grad(loss, argnums=(0, 1)), params, state)
     jacfwd, c_jf = compiled(jax.jacfwd(coefficients), x)
-    t_fwd = timed(forward, (params, state), repeats)
-    t_rev = timed(reverse, (params, state), repeats)
-    t_jf = timed(jacfwd, (x,), repeats)
+    rounds = max(repeats, BOUNCE_ROUNDS)
+    times = interleaved({"forward": (forward, (params, state)), "reverse": (reverse, (params, state)),
+                         "jacfwd": (jacfwd, (x,))}, rounds)
+    t_fwd, t_rev, t_jf = (float(np.min(times[k])) for k in ("forward", "reverse", "jacfwd"))
+    median = {k: float(np.median(v)) for k, v in times.items()}
     grads = reverse(params, state)
     finite = all(bool(np.all(np.isfinite(np.asarray(g)))) for g in jax.tree.leaves(grads))
     return {
         "steps": steps, "forward_s": t_fwd, "reverse_grad_s": t_rev, "forward_jacobian_3_params_s": t_jf,
         "ratio_reverse_over_forward": t_rev / t_fwd, "ratio_jacfwd3_over_forward": t_jf / t_fwd,
+        "timing_rounds": rounds, "median_forward_s": median["forward"], "median_reverse_grad_s": median["reverse"],
+        "median_ratio_reverse_over_forward": median["reverse"] / median["forward"],
         "compile_forward_s": c_fwd, "compile_reverse_s": c_rev, "compile_jacfwd_s": c_jf,
         "reverse_memory_bytes": memory_bytes(reverse), "forward_memory_bytes": memory_bytes(forward),
         "gradient_finite": finite,
@@ -152,7 +179,9 @@ def run_peers(peer_python, steps, repeats):
 def print_table(record):
     b = record["bounce"]
     print(f"\nbounce, {b['steps']} steps: forward {b['forward_s'] * 1e3:.1f} ms, reverse gradient "
-          f"{b['reverse_grad_s'] * 1e3:.1f} ms (x{b['ratio_reverse_over_forward']:.2f}), forward Jacobian (3 params) "
+          f"{b['reverse_grad_s'] * 1e3:.1f} ms (x{b['ratio_reverse_over_forward']:.2f}; medians "
+          f"{b['median_forward_s'] * 1e3:.1f} / {b['median_reverse_grad_s'] * 1e3:.1f} ms, "
+          f"x{b['median_ratio_reverse_over_forward']:.2f}), forward Jacobian (3 params) "
           f"{b['forward_jacobian_3_params_s'] * 1e3:.1f} ms (x{b['ratio_jacfwd3_over_forward']:.2f}); compile "
           f"{b['compile_forward_s']:.1f} / {b['compile_reverse_s']:.1f} / {b['compile_jacfwd_s']:.1f} s")
     f = record["free_body_long"]

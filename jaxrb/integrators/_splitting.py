@@ -20,16 +20,14 @@ __all__ = ["SymplecticSplitting"]
 def _rotate_about_principal_axis(pose, k: int, angle):
     """Rotate the body about its ``k``-th principal axis ``e`` by ``angle`` (rad).
 
-    ``pose`` lists the components of the attitude ``q`` (principal frame to world) and of
-    the body momentum ``P``, ``[q_w, q_x, q_y, q_z, P_x, P_y, P_z]`` (seven scalars; kept
-    apart so that reverse mode has no slices to transpose into pads). ``q`` becomes
+    ``pose`` packs the attitude ``q`` (principal frame to world) and the body momentum
+    ``P`` as ``(q_w, q_x, q_y, q_z, P_x, P_y, P_z)`` (7,). ``q`` becomes
     ``q (cos a/2, sin a/2 e)`` and ``P`` turns the opposite way, ``Rot(e, -a) P``
     (Rodrigues' formula with ``e`` a coordinate axis: only the two other components move).
     """
     i, j = (k + 1) % 3, (k + 2) % 3  # (i, j, k) cyclic
     c, s = jnp.cos(0.5 * angle), jnp.sin(0.5 * angle)
-    w, *v = pose[:4]
-    p = pose[4:]
+    w, v, p = pose[0], pose[1:4], pose[4:]
     q = [w * c - s * v[k], None, None, None]  # q (c, s e) = (w c - s v.e, c v + s w e + s v x e)
     q[1 + k] = c * v[k] + s * w
     q[1 + i] = c * v[i] + s * v[j]  # (v x e)_i = v_j, (v x e)_j = -v_i
@@ -39,7 +37,7 @@ def _rotate_about_principal_axis(pose, k: int, angle):
     momentum[k] = p[k]
     momentum[i] = cos_full * p[i] + sin_full * p[j]
     momentum[j] = cos_full * p[j] - sin_full * p[i]
-    return q + momentum
+    return jnp.stack(q + momentum)
 
 
 class SymplecticSplitting(Integrator):
@@ -94,15 +92,14 @@ class SymplecticSplitting(Integrator):
         flows = ((outer, 0.5), (middle, 0.5), (inner, 1.0), (middle, 0.5), (outer, 0.5))
 
         def sub_rotations(moments, q, momentum):
-            pose = spatial.components(q) + spatial.components(momentum)
-            moments = spatial.components(moments)
+            pose = jnp.concatenate([q, momentum])
             for k, fraction in flows:
                 pose = _rotate_about_principal_axis(pose, k, fraction * dt * pose[4 + k] / moments[k])
                 # The barrier keeps each rotation its own kernel: fused into one, XLA:CPU
                 # recomputed the chain's shared terms exponentially (each extra rotation
                 # ~5x slower; the vmapped step 20x slower than RK4).
                 pose = jax.lax.optimization_barrier(pose)
-            return jnp.stack(pose[:4], axis=-1)
+            return pose[:4]
 
         # Unrolled (the axes are static, so each rotation moves two components only) and
         # checkpointed (reverse mode stores the chain's input, not its ~100 intermediates,
