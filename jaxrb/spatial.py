@@ -23,7 +23,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
-    "components",
     "safe_norm",
     "safe_normalize",
     "cross",
@@ -73,19 +72,20 @@ def _sum_last(x: Array) -> Array:
     """
     if x.shape[-1] > 4:
         return jnp.sum(x, axis=-1)
-    first, *rest = components(x)
+    first, *rest = _components(x)
     for c in rest:
         first = first + c
     return first
 
 
-def components(x: Float[ArrayLike, "... n"]) -> list[Array]:
+def _components(x: ArrayLike) -> list[Array]:
     """The ``n`` components of ``x`` along its last axis, each of shape ``(...)``.
 
     One ``unstack``, whose transpose in reverse mode is one ``stack``. Indexing each
     component (``x[..., i]``) transposes to one ``pad`` per component instead, and
-    XLA:CPU keeps those as separate kernels: 37 of the bouncing ball's ~275 reverse-pass
-    kernels a step were such pads (benchmarks/README.md).
+    XLA:CPU runs each pad as its own kernel: taking components this way removed about 16
+    of the bouncing ball's 274 reverse-pass kernels a step (benchmarks/README.md,
+    "Components by ``unstack``").
     """
     return jnp.unstack(jnp.asarray(x), axis=-1)
 
@@ -97,8 +97,8 @@ def dot(a: Float[ArrayLike, "... n"], b: Float[ArrayLike, "... n"]) -> Float[Arr
 
 def cross(a: Float[ArrayLike, "... 3"], b: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
     """Cross product ``a x b`` over the last axis."""
-    ax, ay, az = components(a)
-    bx, by, bz = components(b)
+    ax, ay, az = _components(a)
+    bx, by, bz = _components(b)
     return jnp.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
@@ -136,7 +136,7 @@ def skew(w: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3 3"]:
 
     ``[[0, -wz, wy], [wz, 0, -wx], [-wy, wx, 0]]``.
     """
-    wx, wy, wz = components(w)
+    wx, wy, wz = _components(w)
     z = jnp.zeros_like(wx)
     return jnp.stack(
         [
@@ -200,8 +200,8 @@ def identity_quat(shape: tuple[int, ...] = (), dtype=None) -> Float[Array, "... 
 
 def quat_multiply(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``p q`` (apply ``q`` first, then ``p``)."""
-    pw, px, py, pz = components(p)
-    qw, qx, qy, qz = components(q)
+    pw, px, py, pz = _components(p)
+    qw, qx, qy, qz = _components(q)
     return jnp.stack(
         [
             pw * qw - px * qx - py * qy - pz * qz,
@@ -215,7 +215,7 @@ def quat_multiply(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) ->
 
 def quat_conjugate(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """``q* = (w, -x, -y, -z)``: the inverse of a unit quaternion."""
-    w, x, y, z = components(q)
+    w, x, y, z = _components(q)
     return jnp.stack([w, -x, -y, -z], axis=-1)
 
 
@@ -234,7 +234,7 @@ def quat_rotate(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3"]) -> F
     which costs two cross products instead of two Hamilton products.
     """
     v = jnp.asarray(v)
-    w, x, y, z = components(q)
+    w, x, y, z = _components(q)
     u = jnp.stack([x, y, z], axis=-1)
     t = 2.0 * cross(u, v)
     return v + w[..., None] * t + cross(u, t)
@@ -247,7 +247,7 @@ def quat_rotate_inverse(q: Float[ArrayLike, "... 4"], v: Float[ArrayLike, "... 3
 
 def quat_to_matrix(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3 3"]:
     """Rotation matrix ``A`` of a unit quaternion, so that ``A v = q (0, v) q*``."""
-    w, x, y, z = components(q)
+    w, x, y, z = _components(q)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
