@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
-from .contact._solver import SOLUTION
+from .contact._solver import SAVE_SOLUTIONS
 from .contact._step import contact_step, initial_impulses
 from .integrators import Integrator
 from .scene import Scene
@@ -205,7 +205,7 @@ def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: b
         # README.md, "Checkpointed steps"): a tumbling box's reverse pass 129 -> 108 kernels
         # a step and its gradient 11.9 -> 7.8 ms (medians), forward unchanged; the bouncing
         # ball, a 1024-box float32 ensemble and a 3-box stack within noise.
-        one_step = jax.checkpoint(one_step, policy=jax.checkpoint_policies.save_only_these_names(SOLUTION))
+        one_step = jax.checkpoint(one_step, policy=SAVE_SOLUTIONS)
     else:
         one_step = step
 

@@ -41,6 +41,9 @@ from .. import spatial
 
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a solve's impulses and velocities.
 SOLUTION = "jaxrb_contact_solution"
+#: The ``jax.checkpoint`` policy that keeps the solves' solutions (and nothing else), so a
+#: rematerialised step never runs the sweeps twice.
+SAVE_SOLUTIONS = jax.checkpoint_policies.save_only_these_names(SOLUTION)
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
            "relative_velocity", "normal_velocities", "collisions"]

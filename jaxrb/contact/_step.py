@@ -51,7 +51,7 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect, pair_separations
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import SOLUTION, Bodies, Frames, collisions, frames, normal_velocities, solve
+from ._solver import SAVE_SOLUTIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
 
 __all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
 
@@ -229,8 +229,8 @@ def _rematerialised(ctx: _Ctx, params: Params, state: State, h, lam0, derived, b
     of 643 and compiled in 29 s instead of 47, with the same value to the last digit. The
     solvers' solutions (named ``SOLUTION``) are kept, so the recomputation does not run
     their sweeps again."""
-    keep = jax.checkpoint_policies.save_only_these_names(SOLUTION)
-    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce), policy=keep)(state)
+    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce),
+                          policy=SAVE_SOLUTIONS)(state)
 
 
 def resolve_impacts(scene: Scene, params: Params, state: State, settings: ContactSettings | None = None,
@@ -339,7 +339,6 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     # The contact solves' solutions (named SOLUTION) are saved by the outer checkpoint too:
     # otherwise reverse mode re-runs every PGS solve once more per step (measured on a 3-box
     # stack: 1150 ms against 1050 ms for the 200-step gradient; on the ball it makes no odds).
-    save_solutions = jax.checkpoint_policies.save_only_these_names(SOLUTION)
 
     def step(params, state):
         # Which pairs, apart at the start, overlap at the end of the step's free flight?
@@ -358,10 +357,10 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
             far = far & ~jnp.any(candidate)
         free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
         contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
-                                 policy=save_solutions)
+                                 policy=SAVE_SOLUTIONS)
         return jax.lax.cond(far, free, contact, params, state)
 
-    return jax.checkpoint(step, policy=save_solutions)(params, state)
+    return jax.checkpoint(step, policy=SAVE_SOLUTIONS)(params, state)
 
 
 def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, end_sep, candidate) -> State:
