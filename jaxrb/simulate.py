@@ -53,7 +53,13 @@ class Step(eqx.Module):
 
     @eqx.filter_jit
     def __call__(self, params: Params, state: State) -> State:
-        return self.advance(params, state, self.integrator.precompute(params))
+        advance = self.advance
+        if self.scene.contact_pairs:
+            # Reverse mode through a user's own loop of steps recomputes each contact step
+            # from its input state (and the solves' saved solutions) instead of storing the
+            # residuals of both branches of its lax.cond; rollout does the same per step.
+            advance = jax.checkpoint(advance, policy=SAVE_SOLUTIONS)
+        return advance(params, state, self.integrator.precompute(params))
 
     def advance(self, params: Params, state: State, derived) -> State:
         """One step, given ``derived = self.integrator.precompute(params)`` (see Integrator)."""

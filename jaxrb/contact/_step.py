@@ -326,41 +326,39 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
 
     Far from everything (no slot within the margin at the start, no pair closing during the
     step's free flight) it is the free step: kick, drift, kick, with no contact work, the
-    same arithmetic as the contact step takes there. The whole step is checkpointed, and so
-    are both branches: a ``lax.cond``'s linearisation outputs the residuals of both
-    branches (zero-filled for the one not taken) and reverse mode would stack them at every
-    step of a rollout; a checkpoint's residuals are its inputs. Measured on the 1000-step
-    bouncing ball of ``benchmarks/gradients.py``: see the README's gradients section.
+    same arithmetic as the contact step takes there. Both branches are checkpointed: a
+    ``lax.cond``'s linearisation outputs the residuals of both branches (zero-filled for the
+    one not taken) and reverse mode would stack them at every step of a rollout; a
+    checkpoint's residuals are its inputs. The whole step is checkpointed by its callers
+    (``rollout`` and ``Step.__call__``, with :data:`SAVE_SOLUTIONS`), once. A second
+    checkpoint here, nested in theirs, gave the same gradients to the last bit and the
+    same run times, and only slowed compilation: ``jax.jacrev`` of a 10-step two-ball
+    rollout traced in 23.5 s with it and 17.1 s without (one run each); the 1000-step
+    ball's gradient took 50 and 57 s to trace and compile with it, 50 and 46 s without
+    (two alternating runs). Run times: see the README's gradients section.
     """
     ctx = _Ctx(scene, layout_of(scene), integrator, settings, dt)
     if state.contact_impulse is None:
         state = dataclasses.replace(state, contact_impulse=initial_impulses(scene, state.position.dtype))
 
-    # The contact solves' solutions (named SOLUTION) are saved by the outer checkpoint too:
-    # otherwise reverse mode re-runs every PGS solve once more per step (measured on a 3-box
-    # stack: 1150 ms against 1050 ms for the 200-step gradient; on the ball it makes no odds).
-
-    def step(params, state):
-        # Which pairs, apart at the start, overlap at the end of the step's free flight?
-        # Their separations (cheap: no box-box manifold) at both ends bracket the time of
-        # impact. Only their values are used (to choose a branch, and as the bracket), so
-        # they are computed without tangents.
-        frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
-        start_sep = _pair_gaps(ctx, frozen_state)
-        far = jnp.all(start_sep >= ctx.margin)
-        end_sep = candidate = None
-        if settings.time_of_impact:
-            flight = _free_flight(ctx, frozen_params, frozen_state)
-            end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
-            end_sep = _pair_gaps(ctx, end_pose)
-            candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
-            far = far & ~jnp.any(candidate)
-        free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
-        contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
-                                 policy=SAVE_SOLUTIONS)
-        return jax.lax.cond(far, free, contact, params, state)
-
-    return jax.checkpoint(step, policy=SAVE_SOLUTIONS)(params, state)
+    # Which pairs, apart at the start, overlap at the end of the step's free flight?
+    # Their separations (cheap: no box-box manifold) at both ends bracket the time of
+    # impact. Only their values are used (to choose a branch, and as the bracket), so
+    # they are computed without tangents.
+    frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
+    start_sep = _pair_gaps(ctx, frozen_state)
+    far = jnp.all(start_sep >= ctx.margin)
+    end_sep = candidate = None
+    if settings.time_of_impact:
+        flight = _free_flight(ctx, frozen_params, frozen_state)
+        end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
+        end_sep = _pair_gaps(ctx, end_pose)
+        candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
+        far = far & ~jnp.any(candidate)
+    free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
+    contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
+                             policy=SAVE_SOLUTIONS)
+    return jax.lax.cond(far, free, contact, params, state)
 
 
 def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, end_sep, candidate) -> State:
