@@ -42,7 +42,9 @@ from .. import spatial
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a solve's impulses and velocities.
 SOLUTION = "jaxrb_contact_solution"
 #: The ``jax.checkpoint`` policy that keeps the solves' solutions (and nothing else), so a
-#: rematerialised step never runs the sweeps twice.
+#: rematerialised step never runs the sweeps twice. Saving them in the step's checkpoint
+#: was measured on a 3-box stack: 1050 ms against 1150 ms for the 200-step gradient (on
+#: the bouncing ball it made no difference).
 SAVE_SOLUTIONS = jax.checkpoint_policies.save_only_these_names(SOLUTION)
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
