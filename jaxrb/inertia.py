@@ -534,10 +534,18 @@ def _jacobi_eigh(matrix):
     slower than RK4 (benchmarks/free_body.py). Not differentiated itself: the custom
     JVP of ``_principal_axes`` gives the derivatives.
     """
-    axes = jnp.broadcast_to(jnp.eye(3, dtype=matrix.dtype), matrix.shape)
-    for _ in range(_JACOBI_SWEEPS):
+    def sweep(_, carry):
         for p, q in ((0, 1), (0, 2), (1, 2)):
-            matrix, axes = _jacobi_rotation(matrix, axes, p, q)
+            carry = _jacobi_rotation(*carry, p, q)
+        return carry
+
+    axes = jnp.broadcast_to(jnp.eye(3, dtype=matrix.dtype), matrix.shape)
+    # A loop, not unrolled: unrolled, the sweeps were 988 of the 6,021 equations of the
+    # bouncing ball's forward rollout (5,033 now), for a computation that runs once per
+    # rollout. Forward trace + compile of the ball and of the 5-box stack fell ~10-15%
+    # (noisy: two runs each); a scan over Step.__call__, which runs it every step, is as
+    # fast as before (XLA hoists it out of the loop).
+    matrix, axes = jax.lax.fori_loop(0, _JACOBI_SWEEPS, sweep, (matrix, axes))
     moments = jnp.diagonal(matrix, axis1=-2, axis2=-1)
     # Sort ascending with a three-comparator network, swapping eigenvector columns along.
     for i, j in ((0, 1), (1, 2), (0, 1)):
