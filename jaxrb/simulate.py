@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
-from .contact._solver import SAVE_SOLUTIONS
+from .contact._solver import SAVE_NAMED
 from .contact._step import contact_step, initial_impulses
 from .integrators import Integrator
 from .scene import Scene
@@ -58,7 +58,7 @@ class Step(eqx.Module):
             # Reverse mode through a user's own loop of steps recomputes each contact step
             # from its input state (and the solves' saved solutions) instead of storing the
             # residuals of both branches of its lax.cond; rollout does the same per step.
-            advance = jax.checkpoint(advance, policy=SAVE_SOLUTIONS)
+            advance = jax.checkpoint(advance, policy=SAVE_NAMED)
         return advance(params, state, self.integrator.precompute(params))
 
     def advance(self, params: Params, state: State, derived) -> State:
@@ -206,12 +206,13 @@ def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: b
 
         # Reverse mode recomputes each step from its input state instead of stacking the
         # step's intermediates (44 arrays a step for a tumbling box under the splitting,
-        # each its own dynamic-update-slice kernel). The contact solves' solutions
-        # (SOLUTION) are still saved, so no PGS sweep runs twice. Measured (benchmarks/
-        # README.md, "Checkpointed steps"): a tumbling box's reverse pass 129 -> 108 kernels
-        # a step and its gradient 11.9 -> 7.8 ms (medians), forward unchanged; the bouncing
-        # ball, a 1024-box float32 ensemble and a 3-box stack within noise.
-        one_step = jax.checkpoint(one_step, policy=SAVE_SOLUTIONS)
+        # each its own dynamic-update-slice kernel). The contact solves' solutions and the
+        # separations that chose the step's branch are still saved (SAVE_NAMED), so no PGS
+        # sweep runs twice. Measured (benchmarks/README.md, "Checkpointed steps"): a
+        # tumbling box's reverse pass 129 -> 108 kernels a step and its gradient 11.9 ->
+        # 7.8 ms (medians), forward unchanged; the bouncing ball, a 1024-box float32
+        # ensemble and a 3-box stack within noise.
+        one_step = jax.checkpoint(one_step, policy=SAVE_NAMED)
     else:
         one_step = step
 

@@ -42,6 +42,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
@@ -51,7 +52,7 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect, pair_separations
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import SAVE_SOLUTIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
+from ._solver import SAVE_NAMED, SEPARATIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
 
 __all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
 
@@ -230,7 +231,7 @@ def _rematerialised(ctx: _Ctx, params: Params, state: State, h, lam0, derived, b
     solvers' solutions (named ``SOLUTION``) are kept, so the recomputation does not run
     their sweeps again."""
     return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce),
-                          policy=SAVE_SOLUTIONS)(state)
+                          policy=SAVE_NAMED)(state)
 
 
 def resolve_impacts(scene: Scene, params: Params, state: State, settings: ContactSettings | None = None,
@@ -330,7 +331,7 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     ``lax.cond``'s linearisation outputs the residuals of both branches (zero-filled for the
     one not taken) and reverse mode would stack them at every step of a rollout; a
     checkpoint's residuals are its inputs. The whole step is checkpointed by its callers
-    (``rollout`` and ``Step.__call__``, with :data:`SAVE_SOLUTIONS`), once. A second
+    (``rollout`` and ``Step.__call__``, with :data:`SAVE_NAMED`), once. A second
     checkpoint here, nested in theirs, gave the same gradients to the last bit and the
     same run times, and only slowed compilation: ``jax.jacrev`` of a 10-step two-ball
     rollout traced in 23.5 s with it and 17.1 s without (one run each); the 1000-step
@@ -344,20 +345,24 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     # Which pairs, apart at the start, overlap at the end of the step's free flight?
     # Their separations (cheap: no box-box manifold) at both ends bracket the time of
     # impact. Only their values are used (to choose a branch, and as the bracket), so
-    # they are computed without tangents.
+    # they are computed without tangents; and named (SEPARATIONS, one array), so that reverse
+    # mode through the checkpointed step reads them back instead of computing them again.
     frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
     start_sep = _pair_gaps(ctx, frozen_state)
-    far = jnp.all(start_sep >= ctx.margin)
     end_sep = candidate = None
     if settings.time_of_impact:
         flight = _free_flight(ctx, frozen_params, frozen_state)
         end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
-        end_sep = _pair_gaps(ctx, end_pose)
+        start_sep, end_sep = checkpoint_name(jnp.stack([start_sep, _pair_gaps(ctx, end_pose)]), SEPARATIONS)
         candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
+    else:
+        start_sep = checkpoint_name(start_sep, SEPARATIONS)
+    far = jnp.all(start_sep >= ctx.margin)
+    if candidate is not None:
         far = far & ~jnp.any(candidate)
     free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
     contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
-                             policy=SAVE_SOLUTIONS)
+                             policy=SAVE_NAMED)
     return jax.lax.cond(far, free, contact, params, state)
 
 
