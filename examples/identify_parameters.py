@@ -11,6 +11,11 @@ guess and fits, then prints the truth, the fit, its standard error and the relat
 
 Run:  python examples/identify_parameters.py [scenario ...] [--quick] [--seed N]
 (all scenarios by default; ``--quick`` shortens the records for CI).
+
+Each scenario is a function ``(rng, quick, **fit_options) -> (error, result)``: the largest
+relative error of what it recovers, and the ``rb.identify.FitResult``. ``fit_options`` go
+to the fit (``tests/test_identify.py`` runs every scenario with ``keep_iterates=True`` and
+checks each iterate).
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ def report(name, truth, fitted, std):
         print(f"  {name:<22} truth {t: .5f}  fit {f: .5f} +- {s:.1e}  error {abs(f / t - 1):.2e}")
 
 
-def bounce(rng, quick):
+def bounce(rng, quick, **fit_options):
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, SIE, 1e-2)
     n = 120 if quick else 200
@@ -47,14 +52,15 @@ def bounce(rng, quick):
     truth = scene.params(restitution=0.8, dtype=jnp.float64)
     measured = heights(truth) + 1e-3 * rng.standard_normal(n)
     guess = scene.params(restitution=rng.uniform(0.2, 0.95), dtype=jnp.float64)
-    result = rb.identify.fit(lambda p, d: jnp.mean((heights(p) - d) ** 2), scene, guess, "restitution", data=measured)
+    result = rb.identify.fit(lambda p, d: jnp.mean((heights(p) - d) ** 2), scene, guess, "restitution", data=measured,
+                             **fit_options)
     print(result)
     info = rb.identify.identifiability(lambda p, d: heights(p) - d, scene, result.params, "restitution", data=measured)
     report("restitution", 0.8, result.params.restitution, info.std)
-    return abs(float(result.params.restitution[0]) / 0.8 - 1)
+    return abs(float(result.params.restitution[0]) / 0.8 - 1), result
 
 
-def tumbling(rng, quick):
+def tumbling(rng, quick, **fit_options):
     moments, omega0 = np.array([0.1, 0.2, 0.3]), np.array([1.0, 0.3, 2.0])
     samples = 50 if quick else 100
     exact = rb.exact.torque_free_top(moments, omega0, np.arange(1, samples + 1) * 0.02)
@@ -68,17 +74,18 @@ def tumbling(rng, quick):
         return jax.vmap(rb.body_angular_velocity, in_axes=(None, 0))(params, traj)[:, 0]
 
     guess = scene.params(dtype=jnp.float64).replace(inertia=jnp.asarray(np.diag(rng.uniform(0.12, 0.22, 3)))[None])
-    result = rb.identify.fit_least_squares(lambda p, d: gyro(p) - d, scene, guess, "inertia", data=measured)
+    result = rb.identify.fit_least_squares(lambda p, d: gyro(p) - d, scene, guess, "inertia", data=measured,
+                                           **fit_options)
     # Moments 1:2:3 are a flat plate's (I1 + I2 = I3), where the log-Cholesky map is flat:
     # there the report linearises the residuals again instead of reusing the fit's Jacobian.
     info = result.identifiability()
     print(info)
     fitted = np.diag(np.asarray(result.params.inertia[0]))
     report("I2/I1, I3/I1", moments[1:] / moments[0], fitted[1:] / fitted[0], [np.nan, np.nan])
-    return float(np.max(np.abs((fitted[1:] / fitted[0]) / (moments[1:] / moments[0]) - 1)))
+    return float(np.max(np.abs((fitted[1:] / fitted[0]) / (moments[1:] / moments[0]) - 1))), result
 
 
-def collision(rng, quick):
+def collision(rng, quick, **fit_options):
     balls = [rb.Body(name, shape=rb.Sphere(0.1), mass=1.0) for name in ("known", "unknown")]
     scene = rb.Scene(balls, gravity=None, contacts=[("known", "unknown")])
     step = rb.make_step(scene, SIE, 1e-2)
@@ -92,14 +99,14 @@ def collision(rng, quick):
     measured = track(truth) + 1e-3 * rng.standard_normal((n, 2))
     guess = truth.replace(mass=jnp.asarray([1.0, rng.uniform(0.1, 3.0)]), restitution=jnp.asarray([0.5]))
     free = {"mass": ["unknown"], "restitution": True}
-    result = rb.identify.fit_least_squares(lambda p, d: track(p) - d, scene, guess, free, data=measured)
+    result = rb.identify.fit_least_squares(lambda p, d: track(p) - d, scene, guess, free, data=measured, **fit_options)
     info = result.identifiability()  # from the fit's last Jacobian: no new compilation
     report("mass[unknown]", 0.4, result.params.mass[1], info.std[0])
     report("restitution", 0.9, result.params.restitution, info.std[1])
-    return abs(float(result.params.mass[1]) / 0.4 - 1)
+    return abs(float(result.params.mass[1]) / 0.4 - 1), result
 
 
-def sliding(rng, quick):
+def sliding(rng, quick, **fit_options):
     scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, SIE, 1e-2)
     n = 80 if quick else 100
@@ -111,13 +118,14 @@ def sliding(rng, quick):
     truth = scene.params(friction=0.4, dtype=jnp.float64)
     measured = track(truth) + 1e-3 * rng.standard_normal(n)
     guess = scene.params(friction=rng.uniform(0.1, 0.8), dtype=jnp.float64)  # a cube tips over above mu = 1
-    result = rb.identify.fit_least_squares(lambda p, d: track(p) - d, scene, guess, "friction", data=measured)
+    result = rb.identify.fit_least_squares(lambda p, d: track(p) - d, scene, guess, "friction", data=measured,
+                                           **fit_options)
     info = result.identifiability()  # from the fit's last Jacobian: no new compilation
     report("friction", 0.4, result.params.friction, info.std)
-    return abs(float(result.params.friction[0]) / 0.4 - 1)
+    return abs(float(result.params.friction[0]) / 0.4 - 1), result
 
 
-def torques(rng, quick):
+def torques(rng, quick, **fit_options):
     rot = np.asarray(rb.spatial.quat_to_matrix(rb.spatial.quat_from_axis_angle(np.array([1.0, 2.0, 2.0]) / 3, 0.7)))
     truth_inertia = rot @ np.diag([0.2, 0.3, 0.4]) @ rot.T
 
@@ -137,14 +145,14 @@ def torques(rng, quick):
     measured = gyro(truth, 2e-4, 10 * steps) + 1e-3 * rng.standard_normal((50, 3))  # a 10x finer step
     guess = truth.replace(inertia=jnp.asarray(np.diag(rng.uniform(0.2, 0.4, 3)))[None])
     residuals = lambda p, d: gyro(p, 2e-3, steps) - d  # noqa: E731
-    result = rb.identify.fit_least_squares(residuals, scene, guess, "inertia", data=measured)
+    result = rb.identify.fit_least_squares(residuals, scene, guess, "inertia", data=measured, **fit_options)
     info = result.identifiability()  # from the fit's last Jacobian: no new compilation
     fitted = np.asarray(result.params.inertia[0])
     upper = np.triu_indices(3)
     std = info.std[[0, 3, 4, 1, 5, 2]]  # labels xx yy zz xy xz yz -> upper triangle xx xy xz yy yz zz
     report("inertia xx xy xz yy yz zz", truth_inertia[upper], fitted[upper], std)
     print(f"  identifiable: {info.identifiable}")
-    return float(np.max(np.abs(fitted - truth_inertia) / np.abs(truth_inertia)))
+    return float(np.max(np.abs(fitted - truth_inertia) / np.abs(truth_inertia))), result
 
 
 SCENARIOS = {"bounce": bounce, "tumbling": tumbling, "collision": collision, "sliding": sliding, "torques": torques}
@@ -162,7 +170,7 @@ def main(argv=None):
     errors = {}
     for name in args.scenarios or list(SCENARIOS):
         print(f"\n== {name}")
-        errors[name] = SCENARIOS[name](np.random.default_rng(args.seed), args.quick)
+        errors[name], _ = SCENARIOS[name](np.random.default_rng(args.seed), args.quick)
     print("\nlargest relative error per scenario: " + ", ".join(f"{k} {v:.1e}" for k, v in errors.items()))
     return errors
 
