@@ -58,6 +58,35 @@ def test_contact_pairs_all_and_listed():
     assert groups == {("Sphere", "Plane"), ("Sphere", "Box")}
 
 
+def _check_colouring(layout):
+    """Every slot in exactly one colour, and no two slots of a colour moving one body."""
+    n, slots = layout.num_bodies, layout.num_slots
+    seen = []
+    for colour in layout.colours:
+        real = [s for s in colour if s < slots]
+        seen += real
+        moved = [x for s in real for x in {layout.body_a[s], layout.body_b[s]} if x < n]
+        assert len(moved) == len(set(moved)), colour
+    assert sorted(seen) == list(range(slots))
+
+
+def test_slot_colouring_is_valid_and_reaches_the_degree_bound():
+    # Five boxes, all pairs: 10 box-box and 5 box-ground pairs of 4 slots, 20 slots on each
+    # box. 20 colours is the least any colouring can have; greedy in slot order took 28.
+    stack = rb.Scene([rb.Body(f"box{i}", shape=BOX, mass=1.0) for i in range(5)], ground=rb.Plane(),
+                     contacts="all")
+    layout = layout_of(stack)
+    _check_colouring(layout)
+    assert layout.num_slots == 60 and len(layout.colours) == 20
+    # A mixed scene (pairs with 1, 2 and 4 slots; a body with no ground pair) stays valid.
+    rng = np.random.default_rng(0)
+    shapes = [rb.Sphere(0.1), BOX, rb.Capsule(0.05, 0.2)]
+    bodies = [rb.Body(f"b{i}", shape=shapes[i % 3], mass=1.0) for i in range(7)]
+    pairs = [(f"b{i}", f"b{j}") for i in range(7) for j in range(i + 1, 7) if rng.random() < 0.6
+             and {i % 3, j % 3} != {1, 2}] + [(f"b{i}", "ground") for i in range(6)]
+    _check_colouring(layout_of(rb.Scene(bodies, ground=rb.Plane(), contacts=pairs)))
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

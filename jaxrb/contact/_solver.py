@@ -190,60 +190,68 @@ def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
 
 
 class _Local(eqx.Module):
-    """One colour's bodies' velocities ``(W, 3)`` each, updated in place of the global rows."""
+    """One colour's bodies' twists ``(W, 6)`` (velocity, then angular velocity), updated in
+    place of the global rows. One array per side, not four: XLA:CPU emits a kernel per
+    output array of the loop body, and the sweeps run this body hundreds of times a step."""
 
-    va: Array
-    wa: Array
-    vb: Array
-    wb: Array
-
-
-def _gather(c: _Colour, velocity, omega) -> _Local:
-    return _Local(velocity[c.a], omega[c.a], velocity[c.b], omega[c.b])
+    ta: Array
+    tb: Array
 
 
-def _scatter(c: _Colour, velocity, omega, end: _Local):
-    """Write the colour's new velocities into the global rows.
+def _gather(c: _Colour, twist) -> _Local:
+    return _Local(twist[c.a], twist[c.b])
+
+
+def _scatter(c: _Colour, twist, end: _Local):
+    """Write the colour's new twists into the global rows ``(N + 2, 6)``.
 
     No two slots of a colour share a dynamic body, so each dynamic row is written once; the
     static rows (ground, padding) may be written by several slots, all with their unchanged
     value (zero inverse mass). Writing values, not adding differences, keeps float32 from
     rounding each update twice (``v + ((v + dv) - v)``).
     """
-    velocity = velocity.at[c.a].set(end.va).at[c.b].set(end.vb)
-    omega = omega.at[c.a].set(end.wa).at[c.b].set(end.wb)
-    return velocity, omega
+    return twist.at[c.a].set(end.ta).at[c.b].set(end.tb)
 
 
 def _local_velocity(c: _Colour, v: _Local):
     """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis."""
-    ua = v.va + spatial.cross(v.wa, c.r_a)
-    ub = v.vb + spatial.cross(v.wb, c.r_b)
+    ua = v.ta[:, :3] + spatial.cross(v.ta[:, 3:], c.r_a)
+    ub = v.tb[:, :3] + spatial.cross(v.tb[:, 3:], c.r_b)
     return spatial.matvec(c.basis, ua - ub)
 
 
 def _local_apply(c: _Colour, v: _Local, local_impulse) -> _Local:
     """``+P`` on A and ``-P`` on B, ``P`` given in the slot basis ``(W, 3)``."""
     impulse = spatial.matvec(spatial.transpose(c.basis), local_impulse)
-    return _Local(v.va + c.inv_mass_a[:, None] * impulse,
-                  v.wa + spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse)),
-                  v.vb - c.inv_mass_b[:, None] * impulse,
-                  v.wb - spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse)))
+    da = jnp.concatenate([c.inv_mass_a[:, None] * impulse,
+                          spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse))], -1)
+    db = jnp.concatenate([c.inv_mass_b[:, None] * impulse,
+                          spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse))], -1)
+    return _Local(v.ta + da, v.tb - db)
 
 
-def _friction_step(c: _Colour, v: _Local, old_t, radius, on):
+def _friction_step(c: _Colour, u_t, old_t, radius, on):
     """Friction: a projected-gradient step on the disk ``|lambda_t| <= radius`` (Coulomb's
     cone), with the step ``1/k_max``, ``k_max`` the largest eigenvalue of the 2x2 tangential
     block. The step is along ``-u_t``, so a sliding contact's friction opposes its slip
     (maximal dissipation); a full ``K_tt^-1`` step would not, and would twist a sliding box.
     A projected-gradient step of length at most ``1/k_max`` cannot add energy.
-    Returns the change of the tangential impulse ``(W, 2)``."""
-    u = _local_velocity(c, v)
+    ``u_t`` ``(W, 2)`` is the tangential slip. Returns the change of the tangential impulse
+    ``(W, 2)``."""
     k_max = _largest_tangential_eigenvalue(c.delassus)
-    wanted = old_t - u[:, 1:] / k_max[:, None]
+    wanted = old_t - u_t / k_max[:, None]
     norm = spatial.safe_norm(wanted)
     scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
     return jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
+
+
+def _slip_after(c: _Colour, u, d_n):
+    """The tangential slip ``(W, 2)`` after a normal impulse ``d_n`` ``(W,)``: ``u_t + K_tn d_n``.
+
+    The Delassus block is exact for a colour (its slots share no moving body), so this is
+    what applying ``d_n`` and measuring the velocities again would give, and one impulse
+    (normal and friction together) is applied per update instead of two."""
+    return u[:, 1:] + c.delassus[:, 1:, 0] * d_n[:, None]
 
 
 def _update(c: _Colour, v: _Local, lam, target, mu, on, friction: bool):
@@ -255,12 +263,12 @@ def _update(c: _Colour, v: _Local, lam, target, mu, on, friction: bool):
     elastic_cap = jnp.maximum(-2.0 * u[:, 0] / k_nn, 0.0)
     step = jnp.where(raw > 0, jnp.minimum(raw, elastic_cap), raw)
     new_n = jnp.where(on, jnp.maximum(lam[:, 0] + step, 0.0), 0.0)
-    zero = jnp.zeros_like(new_n)
-    v = _local_apply(c, v, jnp.stack([new_n - lam[:, 0], zero, zero], -1))
+    d_n = new_n - lam[:, 0]
     if not friction:
-        return v, lam.at[:, 0].set(new_n)
-    d_t = _friction_step(c, v, lam[:, 1:], mu * new_n, on)
-    v = _local_apply(c, v, jnp.concatenate([zero[:, None], d_t], -1))
+        zero = jnp.zeros_like(d_n)
+        return _local_apply(c, v, jnp.stack([d_n, zero, zero], -1)), lam.at[:, 0].set(new_n)
+    d_t = _friction_step(c, _slip_after(c, u, d_n), lam[:, 1:], mu * new_n, on)
+    v = _local_apply(c, v, jnp.concatenate([d_n[:, None], d_t], -1))
     return v, jnp.concatenate([new_n[:, None], lam[:, 1:] + d_t], -1)
 
 
@@ -274,11 +282,9 @@ def _collision_update(c: _Colour, v: _Local, e, mu, eligible, threshold):
     u = _local_velocity(c, v)
     hit = eligible & (u[:, 0] < -threshold)
     j = jnp.where(hit, -(1.0 + e) * u[:, 0] / c.delassus[:, 0, 0], 0.0)
-    zero = jnp.zeros_like(j)
-    v = _local_apply(c, v, jnp.stack([j, zero, zero], -1))
-    d_t = _friction_step(c, v, jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
-    v = _local_apply(c, v, jnp.concatenate([zero[:, None], d_t], -1))
-    return v, jnp.concatenate([j[:, None], d_t], -1)
+    d_t = _friction_step(c, _slip_after(c, u, j), jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
+    impulse = jnp.concatenate([j[:, None], d_t], -1)
+    return _local_apply(c, v, impulse), impulse
 
 
 def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int):
@@ -289,18 +295,19 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     data = jax.tree.map(lambda x: x[idx], slot_data)
 
     def colour_step(carry, inputs):
-        velocity, omega = carry
+        twist = carry
         c_k, data_k, mine = inputs
-        end, mine = update(c_k, _gather(c_k, velocity, omega), mine, *data_k)
-        return _scatter(c_k, velocity, omega, end), mine
+        end, mine = update(c_k, _gather(c_k, twist), mine, *data_k)
+        return _scatter(c_k, twist, end), mine
 
     def sweep(carry, _):
-        (velocity, omega), values = carry
-        (velocity, omega), values = jax.lax.scan(colour_step, (velocity, omega), (c, data, values))
-        return ((velocity, omega), values), None
+        twist, values = carry
+        twist, values = jax.lax.scan(colour_step, twist, (c, data, values))
+        return (twist, values), None
 
-    start = ((bodies.velocity, bodies.angular_velocity), per_slot[idx])
-    ((velocity, omega), values), _ = jax.lax.scan(sweep, start, None, length=iterations)
+    start = (jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1), per_slot[idx])
+    (twist, values), _ = jax.lax.scan(sweep, start, None, length=iterations)
+    velocity, omega = twist[:, :3], twist[:, 3:]
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     # Padding entries of ``colours`` all point at the inert slot C, whose value stays 0.
     return bodies, per_slot.at[idx].set(values)
