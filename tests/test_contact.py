@@ -149,7 +149,7 @@ def test_bad_coefficients_are_refused(kwargs, message):
     ("kwargs", "message"),
     [({"solver": "lemke"}, "'pgs' or 'exact'"), ({"iterations": 0}, "positive integer"),
      ({"margin": -1.0}, ">= 0"), ({"position_correction": 2.0}, r"\[0, 1\]"),
-     ({"warm_start": 1}, "True or False")],
+     ({"warm_start": 1}, "True or False"), ({"tolerance": -1e-6}, ">= 0")],
 )
 def test_bad_contact_settings_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -391,6 +391,28 @@ def stack(n, masses=None, pairs="adjacent"):
     params = scene.params(friction=0.5)
     position = np.array([[0.0, 0.0, 0.1 + 0.2 * i] for i in range(n)])
     return scene, params, scene.state(params, position=position)
+
+
+def test_sweeps_stop_at_their_tolerance():
+    """One ball pressed into the ground: the first sweep solves it exactly, the second
+    changes nothing, and the rest are skipped; without a tolerance all of them run."""
+    from jaxrb.contact._solver import Bodies, frames, pad_slots, sweeps
+
+    eye = jnp.eye(3)[None] * jnp.asarray([10.0, 0.0, 0.0])[:, None, None]
+    bodies = Bodies(jnp.asarray([1.0, 0.0, 0.0]), eye, jnp.asarray([[0.3, 0.0, -0.5], [0, 0, 0], [0, 0, 0]]),
+                    jnp.zeros((3, 3)))
+    f = frames(bodies, [0], [1], jnp.asarray([[0.0, 0.0, 0.0]]), jnp.asarray([[0.0, 0.0, 1.0]]),
+               jnp.asarray([[0.0, 0.0, 0.1], [0, 0, 0], [0, 0, 0]]))
+    target, mu, active, lam = pad_slots(jnp.zeros(1), jnp.asarray([0.5]), jnp.asarray([True]), jnp.zeros((1, 3)))
+    colours = jnp.asarray([[0]])
+    results = {tol: sweeps(bodies, f, colours, target, mu, active, lam, 20, tolerance=tol) for tol in (None, 0.0, 1e-8)}
+    assert int(results[None][2]) == 20 and int(results[0.0][2]) == 2 and int(results[1e-8][2]) == 2
+    for tol in (0.0, 1e-8):
+        np.testing.assert_array_equal(results[tol][1], results[None][1])
+    # World frame: the normal impulse stops the approach (0.5 N s up); friction, at its bound
+    # mu times that (the slip of 0.3 m/s needs 0.3 / 1.1 N s), opposes the slip along x.
+    world = np.asarray(f.basis[0]).T @ np.asarray(results[None][1][0])
+    np.testing.assert_allclose(world, [-0.25, 0.0, 0.5], atol=1e-12)
 
 
 @pytest.mark.slow

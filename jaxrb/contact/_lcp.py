@@ -85,7 +85,7 @@ def solve_exact(bodies: Bodies, f: Frames, colours, target, mu, active, lam0, it
 
     def stage(carry, _):
         bodies, lam = carry
-        bodies, lam = sweeps(bodies, f, colours, target, mu, active, lam, 1)
+        bodies, lam, _ = sweeps(bodies, f, colours, target, mu, active, lam, 1)
         new_n = _newton_normals(a_mat, normal_velocities(bodies, f), lam[:, 0], target, active, newton_iterations)
         d = new_n - lam[:, 0]
         bodies = apply_impulses(bodies, f, jnp.stack([d, jnp.zeros_like(d), jnp.zeros_like(d)], -1))

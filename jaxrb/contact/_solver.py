@@ -287,9 +287,17 @@ def _collision_update(c: _Colour, v: _Local, e, mu, eligible, threshold):
     return _local_apply(c, v, impulse), impulse
 
 
-def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int):
-    """``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot arrays
-    ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites."""
+def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int,
+                   tolerance: float | None = None):
+    """At most ``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot
+    arrays ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites.
+
+    With a ``tolerance``, the sweeps stop after the first one that changes no value of
+    ``per_slot`` by more than ``tolerance`` times the largest (0: by nothing at all): the
+    later sweeps are skipped at run time by a ``lax.cond`` (inside the ``lax.scan``, so
+    reverse mode still crosses them; under ``vmap`` every sweep runs). Returns the bodies,
+    ``per_slot`` and the number of sweeps run (int32).
+    """
     idx = jnp.asarray(colours)
     c = _by_colour(bodies, f, colours)
     data = jax.tree.map(lambda x: x[idx], slot_data)
@@ -300,17 +308,24 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         end, mine = update(c_k, _gather(c_k, twist), mine, *data_k)
         return _scatter(c_k, twist, end), mine
 
-    def sweep(carry, _):
-        twist, values = carry
-        twist, values = jax.lax.scan(colour_step, twist, (c, data, values))
-        return (twist, values), None
+    def run(twist, values):
+        return jax.lax.scan(colour_step, twist, (c, data, values))
 
-    start = (jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1), per_slot[idx])
-    (twist, values), _ = jax.lax.scan(sweep, start, None, length=iterations)
+    def sweep(carry, _):
+        twist, values, count, done = carry
+        if tolerance is None:
+            return (*run(twist, values), count + 1, done), None
+        twist, new = jax.lax.cond(done, lambda t, v: (t, v), run, twist, values)
+        change = jnp.max(jnp.abs(new - values))
+        return (twist, new, count + jnp.where(done, 0, 1), done | (change <= tolerance * jnp.max(jnp.abs(new)))), None
+
+    twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)
+    start = (twist, per_slot[idx], jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+    (twist, values, count, _), _ = jax.lax.scan(sweep, start, None, length=iterations)
     velocity, omega = twist[:, :3], twist[:, 3:]
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     # Padding entries of ``colours`` all point at the inert slot C, whose value stays 0.
-    return bodies, per_slot.at[idx].set(values)
+    return bodies, per_slot.at[idx].set(values), count
 
 
 def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, iterations: int):
@@ -330,7 +345,9 @@ def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, i
         v, impulse = _collision_update(c, v, e, mu, eligible, threshold)
         return v, total + impulse
 
-    bodies, total = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations)
+    # A sweep with no collision changes nothing, so every later sweep would be the same:
+    # they are skipped (tolerance 0), exactly.
+    bodies, total, _ = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations, 0.0)
     return bodies, total[:-1]
 
 
@@ -347,13 +364,16 @@ def pad_slots(target, mu, active, lam0):
     return pad1(target, 0.0), pad1(mu, 0.0), active, pad1(lam0 * active[:-1, None], 0.0)
 
 
-def sweeps(bodies: Bodies, f: Frames, colours, target, mu, active, lam, iterations: int, friction: bool = True):
-    """``iterations`` projected Gauss-Seidel sweeps on padded slot arrays; ``lam`` already applied."""
+def sweeps(bodies: Bodies, f: Frames, colours, target, mu, active, lam, iterations: int, friction: bool = True,
+           tolerance: float | None = None):
+    """At most ``iterations`` projected Gauss-Seidel sweeps on padded slot arrays (``lam``
+    already applied); see :func:`_colour_sweeps` for ``tolerance``. Returns the bodies,
+    the impulses and the number of sweeps run."""
 
     def update(c, v, lam, target, mu, on):
         return _update(c, v, lam, target, mu, on, friction)
 
-    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations)
+    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations, tolerance)
 
 
 def solve(
@@ -366,8 +386,9 @@ def solve(
     lam0: Float[Array, "c 3"],
     iterations: int,
     friction: bool = True,
+    tolerance: float | None = None,
 ) -> tuple[Bodies, Float[Array, "c 3"]]:
-    """Projected Gauss-Seidel on ``C`` slots, colour by colour, ``iterations`` sweeps.
+    """Projected Gauss-Seidel on ``C`` slots, colour by colour, at most ``iterations`` sweeps.
 
     Args:
         bodies: velocities before the contact impulses (``lam0`` is applied first: warm start).
@@ -378,66 +399,71 @@ def solve(
         mu: ``(C,)`` friction coefficients.
         active: ``(C,)`` bool; inactive slots carry no impulse.
         lam0: ``(C, 3)`` initial accumulated impulses ``(n, t1, t2)``, N s.
-        iterations: static sweep count.
+        iterations: static sweep count (the most, with a ``tolerance``).
         friction: ``False`` solves the normal impulses only.
+        tolerance: static; stop after the first sweep that changes no impulse by more than
+            this times the largest. ``None``: run all ``iterations``.
 
     Returns:
         ``(bodies, lam)``: velocities after the impulses, and the accumulated impulses.
     """
     target, mu, active, lam = pad_slots(target, mu, active, lam0)
-    velocity, omega, lam = _pgs(iterations, friction, bodies, f, colours, target, mu, active, lam)
+    velocity, omega, lam, _ = _pgs(iterations, friction, tolerance, bodies, f, colours, target, mu, active, lam)
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     return bodies, lam[:-1]
 
 
-@jax.custom_jvp
-def _pgs(iterations: int, friction: bool, bodies: Bodies, f: Frames, colours, target, mu, active, lam):
+def _pgs(iterations: int, friction: bool, tolerance, bodies: Bodies, f: Frames, colours, target, mu, active, lam):
     """The sweeps of :func:`solve` on padded slots, from ``lam`` (not yet applied to ``bodies``):
-    the velocities and spins after them and the accumulated impulses ``(C + 1, 3)``."""
+    the velocities and spins after them, the accumulated impulses ``(C + 1, 3)`` and the
+    number of sweeps run (a float scalar, so that it has a tangent, zero, like the rest)."""
 
     def run(_):
         start = apply_impulses(bodies, f, lam)
-        end, impulses = sweeps(start, f, colours, target, mu, active, lam, iterations, friction)
-        return end.velocity, end.angular_velocity, impulses
+        end, impulses, count = sweeps(start, f, colours, target, mu, active, lam, iterations, friction, tolerance)
+        return end.velocity, end.angular_velocity, impulses, count.astype(lam.dtype)
 
     def idle(_):
-        return bodies.velocity, bodies.angular_velocity, jnp.zeros_like(lam)
+        return bodies.velocity, bodies.angular_velocity, jnp.zeros_like(lam), jnp.zeros((), lam.dtype)
 
     # Nothing to solve (a body in flight): skipped at run time, unless vmapped.
     return jax.lax.cond(jnp.any(active), run, idle, None)
 
 
-_pgs = jax.custom_jvp(_pgs.fun, nondiff_argnums=(0, 1))
+_pgs = jax.custom_jvp(_pgs, nondiff_argnums=(0, 1, 2))
 
 
 @_pgs.defjvp
-def _pgs_jvp(iterations, friction, primals, tangents):
+def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
     """The derivative of the sweeps: with their Jacobian frozen where they have converged,
     through every sweep where they have not.
 
     One sweep is a map ``lam -> G(lam, theta)`` (``theta``: velocities, masses, frames,
-    targets, ``mu``), and ``iterations`` of them unroll to ``d lam_k = A d lam_(k-1) + B d
+    targets, ``mu``), and the ``k`` sweeps run unroll to ``d lam_j = A d lam_(j-1) + B d
     theta`` with ``A = dG/d lam`` and ``B = dG/d theta`` taken at each iterate. Where the
-    last sweep has left the impulses unchanged (``|G(lam*) - lam*| <= sqrt(eps) |lam*|``:
-    the iterates have reached the solution and its contact states), both are taken there:
-    the same recursion with a constant ``A`` (a dense ``3(C+1)`` square, from one batched
-    sweep) and one ``B d theta`` (one tangent sweep). Reverse mode then crosses one sweep
-    and ``iterations`` small matrix products instead of every sweep's intermediates (the
-    ball's gradient: ``benchmarks/gradients.py``). Otherwise (a stack whose sweeps have
-    not converged, where freezing ``A`` was measured 0.2-0.5% off finite differences) the
-    sweeps are differentiated one by one, as before. The warm start's tangent ``d lam_0``
-    is carried in both (``A^k d lam_0`` when frozen).
+    iterates have reached the solution and its contact states (the sweeps stopped early at
+    their tolerance, or the last one left the impulses unchanged: ``|G(lam*) - lam*| <=
+    sqrt(eps) |lam*|``), both are taken there: the same recursion with a constant ``A`` (a
+    dense ``3(C+1)`` square, from one batched sweep) and one ``B d theta`` (one tangent
+    sweep), ``k`` times. Reverse mode then crosses one sweep and ``iterations`` small
+    masked matrix products instead of every sweep's intermediates (the ball's gradient:
+    ``benchmarks/gradients.py``). Otherwise (a stack whose sweeps have not converged, where
+    freezing ``A`` was measured 0.2-0.5% off finite differences) the sweeps are
+    differentiated one by one. The warm start's tangent ``d lam_0`` is carried in both
+    (``A^k d lam_0`` when frozen).
     """
     bodies, f, colours, target, mu, active, _ = primals
     d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
     # Named, so that a rematerialising step (``_step._rematerialised``) keeps the solution
-    # instead of running the sweeps again in reverse mode. Packed into one (B + B + C + 1, 3)
-    # array: a rollout stacks each saved array every step (one kernel each, and a cond
-    # zero-fills them every step its other branch is taken).
-    velocity, omega, lam = _pgs(iterations, friction, *primals)
-    rows = np.cumsum([velocity.shape[0], omega.shape[0]])
-    packed = checkpoint_name(jnp.concatenate([velocity, omega, lam]), SOLUTION)
-    velocity, omega, lam = jnp.split(packed, rows)
+    # instead of running the sweeps again in reverse mode. Packed into one (B + B + C + 2, 3)
+    # array (the last row holds the sweep count): a rollout stacks each saved array every
+    # step (one kernel each, and a cond zero-fills them every step its other branch is taken).
+    velocity, omega, lam, count = _pgs(iterations, friction, tolerance, *primals)
+    rows = np.cumsum([velocity.shape[0], omega.shape[0], lam.shape[0]])
+    count_row = jnp.zeros((1, 3), lam.dtype).at[0, 0].set(count)
+    packed = checkpoint_name(jnp.concatenate([velocity, omega, lam, count_row]), SOLUTION)
+    velocity, omega, lam, count_row = jnp.split(packed, rows)
+    count = count_row[0, 0]
 
     def sweep(lam_in, bodies, f, target, mu):
         start = apply_impulses(bodies, f, lam_in)
@@ -449,14 +475,14 @@ def _pgs_jvp(iterations, friction, primals, tangents):
         _, b_vec = jax.jvp(lambda *theta: sweep(lam, *theta), (bodies, f, target, mu),
                            (d_bodies, d_f, d_target, d_mu))
         d_lam, b_vec = d_lam0.reshape(-1), b_vec.reshape(-1)
-        for _ in range(iterations):
-            d_lam = a_mat @ d_lam + b_vec
+        for j in range(iterations):
+            d_lam = jnp.where(j < count, a_mat @ d_lam + b_vec, d_lam)
         d_lam = d_lam.reshape(shape)
         _, d_end = jax.jvp(apply_impulses, (bodies, f, lam), (d_bodies, d_f, d_lam))
         return d_end.velocity, d_end.angular_velocity, d_lam
 
     def unrolled(_):
-        return jax.jvp(lambda *p: _pgs.fun(iterations, friction, *p), primals, tangents)[1]
+        return jax.jvp(lambda *p: _pgs.fun(iterations, friction, tolerance, *p)[:3], primals, tangents)[1]
 
     def idle(_):
         return d_bodies.velocity, d_bodies.angular_velocity, jnp.zeros_like(lam)
@@ -465,10 +491,12 @@ def _pgs_jvp(iterations, friction, primals, tangents):
         tol = jnp.sqrt(jnp.finfo(lam.dtype).eps) * jnp.max(jnp.abs(lam))
         return jnp.max(jnp.abs(sweep(lam, bodies, f, target, mu) - lam)) <= tol
 
-    # (The convergence test costs a sweep: not run in flight.)
+    # (The convergence test costs a sweep: not run in flight, nor when the sweeps stopped early.)
     any_active = jnp.any(active)
-    branch = jnp.where(any_active, jnp.where(jax.lax.cond(any_active, converged, lambda _: True, None), 1, 2), 0)
+    settled = any_active & jax.lax.cond(any_active & (count >= iterations), converged,
+                                        lambda _: True, None)
+    branch = jnp.where(any_active, jnp.where(settled, 1, 2), 0)
     # The branches under ``jax.checkpoint``: a switch's linearisation zero-fills the residuals
     # of the branches not taken, copied at every step; a checkpoint's are just its inputs.
     tangent = jax.lax.switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], None)
-    return (velocity, omega, lam), tangent
+    return (velocity, omega, lam, count), (*tangent, jnp.zeros_like(count))

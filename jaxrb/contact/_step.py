@@ -103,7 +103,8 @@ def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu
     if settings.solver == "exact":
         return solve_exact(bodies, f, colours, target, mu, active, lam0,
                            settings.iterations, settings.newton_iterations)
-    return solve(bodies, f, colours, target, mu, active, lam0, settings.iterations)
+    return solve(bodies, f, colours, target, mu, active, lam0, settings.iterations,
+                 tolerance=settings.tolerance_for(target.dtype))
 
 
 def _omega_to_momentum(params, state, omega_new, omega_old, angular_momentum):
@@ -188,7 +189,8 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
                                 angular_velocity=jnp.zeros_like(bodies.angular_velocity))
     pseudo, _ = solve(still, f, jnp.asarray(np.asarray(layout.colours, dtype=np.int32)),
                       settings.position_correction * depth / h, jnp.zeros_like(mu), push,
-                      jnp.zeros_like(lam0), settings.position_iterations, friction=False)
+                      jnp.zeros_like(lam0), settings.position_iterations, friction=False,
+                      tolerance=settings.tolerance_for(depth.dtype))
     pseudo_momentum = _omega_to_momentum(params, state, pseudo.angular_velocity,
                                          still.angular_velocity, jnp.zeros_like(momentum))
 
