@@ -40,9 +40,10 @@ class ContactSettings:
             changes no impulse by more than ``tolerance`` times the largest impulse. ``None``
             (default): the square root of the state's machine epsilon (1.5e-8 in float64,
             3.5e-4 in float32), the level at which the derivative takes the sweeps as
-            converged. ``0``: always run all ``iterations`` (the sweeps stop only when they
-            change nothing). A resting float32 5-box stack then needs a fraction of its 20
-            sweeps (``benchmarks/contacts.py``); under ``vmap`` every sweep runs.
+            converged. ``0``: the sweeps stop only once one changes nothing. The float32
+            5-box stack of ``benchmarks/contacts.py`` ran 7.4 of its 20 sweeps a step on
+            average over its first 200 steps and 1.1 over the last 1000 of 2 s (float64:
+            20 and 1.0). Under ``vmap`` every sweep runs.
         impact_iterations: sweeps of sequential collisions per impact; momentum crosses
             one contact per sweep in the worst slot order (a row of ``n`` touching balls
             needs ``n - 1``).
