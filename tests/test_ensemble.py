@@ -11,6 +11,7 @@ import textwrap
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxrb as rb
@@ -72,3 +73,83 @@ def test_shard_ensemble_refuses_unbatched_or_uneven_input():
         rb.shard_ensemble(batched, devices=fake_devices)
     placed = rb.shard_ensemble(batched)
     assert jnp.array_equal(placed.position, batched.position)
+
+
+# ------------------------------------------------------------------ branches in ensembles
+
+
+def _counted_cond(calls):
+    """``branch`` whose first branch reports each run of itself (a host callback)."""
+    from jaxrb._branch import branch
+
+    def taken(x, y):
+        jax.debug.callback(lambda: calls.append(1))
+        return jnp.sin(x) * y, x
+
+    def f(pred, x, y):
+        return branch(pred, taken, lambda x, y: (x * y, -x), x, y)
+
+    return f
+
+
+def test_branch_matches_cond_per_member_and_skips_a_branch_no_member_takes():
+    calls = []
+    f = _counted_cond(calls)
+    reference = lambda p, x, y: jax.lax.cond(p, lambda x, y: (jnp.sin(x) * y, x), lambda x, y: (x * y, -x), x, y)  # noqa: E731
+    x, y = jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
+    for pred in ([True, False, True], [True, True, True], [False, False, False]):
+        pred = jnp.array(pred)
+        calls.clear()
+        got = jax.jit(jax.vmap(f))(pred, x, y)
+        jax.block_until_ready(got)
+        want = jax.vmap(reference)(pred, x, y)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
+        # The first branch runs once for the whole ensemble when some member takes it, and
+        # not at all when none does (a vmapped lax.cond would run it either way).
+        assert len(calls) == (1 if bool(jnp.any(pred)) else 0)
+    # The predicate unbatched, the operands batched: one branch.
+    got = jax.vmap(f, in_axes=(None, 0, 0))(jnp.array(False), x, y)
+    np.testing.assert_array_equal(got[0], x * y)
+
+
+def test_branch_derivatives_are_those_of_cond():
+    f = _counted_cond([])
+    reference = lambda p, x, y: jax.lax.cond(p, lambda x, y: (jnp.sin(x) * y, x), lambda x, y: (x * y, -x), x, y)  # noqa: E731
+    loss = lambda g: lambda p, x, y: jnp.sum(g(p, x, y)[0] + 2.0 * g(p, x, y)[1])  # noqa: E731
+    pred, x, y = jnp.array([True, False, True]), jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
+    for argnums in (1, 2):
+        want = jax.vmap(jax.grad(loss(reference), argnums))(pred, x, y)
+        np.testing.assert_allclose(jax.vmap(jax.grad(loss(f), argnums))(pred, x, y), want, rtol=1e-15)
+        np.testing.assert_allclose(jax.grad(lambda x, y: jnp.sum(jax.vmap(loss(f))(pred, x, y)), argnums - 1)(x, y),
+                                   want, rtol=1e-15)
+        np.testing.assert_allclose(jax.jacfwd(lambda x, y: jax.vmap(loss(f))(pred, x, y), argnums - 1)(x, y),
+                                   jnp.diag(want), rtol=1e-15)
+
+
+def test_contact_ensemble_equals_its_members_run_one_by_one():
+    """A vmapped rollout (bouncing balls at different heights, some in flight and some in
+    contact at each step, and a box stack with different frictions) equals each member's
+    own rollout: the ensemble's shared branches change no value. (To rounding: XLA compiles
+    the batched arithmetic into other kernels, 4e-12 relative apart on the stack.)"""
+    ball = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(ball, rb.integrators.SymplecticSplitting(), 1e-2)
+    params = ball.params(restitution=0.8, friction=0.3)
+    states = [step.prepare(ball.state(params, position=(0.0, 0.0, z), velocity=(0.5, 0.0, 0.0)))
+              for z in (0.1, 0.3, 0.6, 1.1)]
+    batched = jax.tree.map(lambda *x: jnp.stack(x), *states)
+    run = lambda s: rb.rollout(step, params, s, 60)[1].position  # noqa: E731
+    together = jax.jit(jax.vmap(run))(batched)
+    for i, s in enumerate(states):
+        np.testing.assert_allclose(together[i], jax.jit(run)(s), rtol=1e-10, atol=1e-14)
+
+    box = rb.Box((0.1, 0.1, 0.1))
+    stack = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(2)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(stack, rb.integrators.SymplecticSplitting(), 1e-3)
+    state = step.prepare(stack.state(stack.params(), position=[[0.0, 0.0, 0.1], [0.02, 0.0, 0.3005]],
+                                     velocity=[[0.0, 0.0, 0.0], [0.3, 0.0, -0.2]]))
+    mus = jnp.array([0.0, 0.4, 0.9])
+    run = lambda mu: rb.rollout(step, stack.params(friction=mu), state, 40)[1].position  # noqa: E731
+    together = jax.jit(jax.vmap(run))(mus)
+    for i, mu in enumerate(mus):
+        np.testing.assert_allclose(together[i], jax.jit(run)(mu), rtol=1e-10, atol=1e-14)

@@ -38,6 +38,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float
 
 from .. import spatial
+from .._branch import branch
 
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a solve's impulses and velocities.
 SOLUTION = "jaxrb_contact_solution"
@@ -294,9 +295,9 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
 
     With a ``tolerance``, the sweeps stop after the first one that changes no value of
     ``per_slot`` by more than ``tolerance`` times the largest (0: by nothing at all): the
-    later sweeps are skipped at run time by a ``lax.cond`` (inside the ``lax.scan``, so
-    reverse mode still crosses them; under ``vmap`` every sweep runs). Returns the bodies,
-    ``per_slot`` and the number of sweeps run (int32).
+    later sweeps are skipped at run time by a cond inside the ``lax.scan`` (so reverse mode
+    still crosses them; under ``vmap``, once every member is done: ``jaxrb._branch``).
+    Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
     idx = jnp.asarray(colours)
     c = _by_colour(bodies, f, colours)
@@ -308,14 +309,15 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         end, mine = update(c_k, _gather(c_k, twist), mine, *data_k)
         return _scatter(c_k, twist, end), mine
 
-    def run(twist, values):
+    def run(twist, values, c, data):
         return jax.lax.scan(colour_step, twist, (c, data, values))
 
     def sweep(carry, _):
         twist, values, count, done = carry
         if tolerance is None:
-            return (*run(twist, values), count + 1, done), None
-        twist, new = jax.lax.cond(done, lambda t, v: (t, v), run, twist, values)
+            return (*run(twist, values, c, data), count + 1, done), None
+        # (An ensemble skips a sweep once all its members are done: see ``_branch``.)
+        twist, new = branch(done, lambda t, v, *_: (t, v), run, twist, values, c, data)
         change = jnp.max(jnp.abs(new - values))
         return (twist, new, count + jnp.where(done, 0, 1), done | (change <= tolerance * jnp.max(jnp.abs(new)))), None
 
@@ -426,8 +428,9 @@ def _pgs(iterations: int, friction: bool, tolerance, bodies: Bodies, f: Frames, 
     def idle(_):
         return bodies.velocity, bodies.angular_velocity, jnp.zeros_like(lam), jnp.zeros((), lam.dtype)
 
-    # Nothing to solve (a body in flight): skipped at run time, unless vmapped.
-    return jax.lax.cond(jnp.any(active), run, idle, None)
+    # Nothing to solve (a body in flight): skipped at run time (in an ensemble, when no
+    # member has anything to solve).
+    return branch(jnp.any(active), run, idle, None)
 
 
 _pgs = jax.custom_jvp(_pgs, nondiff_argnums=(0, 1, 2))

@@ -17,7 +17,7 @@ One step of length ``h`` from state ``s`` (all bodies at once):
 
 Without contacts this is Stoermer-Verlet: exact for constant gravity, second order. A step
 with no slot within the margin at its start and no pair closing during it takes exactly
-this branch (``_free_step``, chosen at run time by ``lax.cond``), with the same arithmetic
+this branch (``_free_step``, chosen at run time by a cond), with the same arithmetic
 as the full step and none of its detection, solves or time-of-impact search.
 Resting on the ground, the drift velocity is exactly zero, so nothing creeps; the velocity
 reported *between* steps is then ``h/2 g`` (leapfrog's staggered velocity), not zero.
@@ -45,6 +45,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
+from .._branch import branch
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import Scene
@@ -164,8 +165,9 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     u_kicked = _normal_velocity(_solver_bodies(params, state, state.velocity + kick_v,
                                                state.angular_momentum + kick_l)[0], f)
     closing = contact.active & ((gap <= TOUCHING) | (gap + h * u_kicked < 0)) & bounce
-    # Skipped at run time when nothing approaches that fast (resting stacks), unless vmapped.
-    hit = jax.lax.cond(
+    # Skipped at run time when nothing approaches that fast (resting stacks; in an ensemble,
+    # when no member has such a slot: ``_branch``).
+    hit = branch(
         jnp.any(closing & (u_start < -settings.restitution_threshold)),
         jax.checkpoint(lambda b: collisions(b, f, colours, e, mu, closing, settings.restitution_threshold,
                                             settings.impact_iterations)[0]),
@@ -365,7 +367,7 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
     contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
                              policy=SAVE_NAMED)
-    return jax.lax.cond(far, free, contact, params, state)
+    return branch(far, free, contact, params, state)
 
 
 def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, end_sep, candidate) -> State:
@@ -381,8 +383,8 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     # Split the step at the impact: [0, tau h], then [tau h, h], which starts with the
     # impact (the sub-step's impact pass: the pair touches there and approaches). One scan
     # over the two parts keeps one copy of the sub-step in the compiled program; a part of
-    # zero length is skipped (at run time, unless vmapped). At tau = 1 the impact is the
-    # next step's, at its start.
+    # zero length is skipped (at run time; in an ensemble, when every member's is). At
+    # tau = 1 the impact is the next step's, at its start.
     any_hit = jnp.any(candidate)
     dtype = state.position.dtype
     start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
@@ -390,14 +392,14 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     # Checkpointed branches (here and for the impacts): a cond's linearisation zero-fills the
     # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
     search = jax.checkpoint(lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap))
-    tau = jax.lax.cond(any_hit, search, lambda: jnp.ones((), dtype))
+    tau = branch(any_hit, search, lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
 
     def part(carry, inputs):
         state, lam = carry
         index, h = inputs
         bounce = (index == 1) | ~any_hit
-        state = jax.lax.cond(
+        state = branch(
             h > 0,
             lambda s: _rematerialised(ctx, params, s, h, lam, derived, bounce),
             lambda s: dataclasses.replace(s, contact_impulse=lam),

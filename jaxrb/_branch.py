@@ -1,0 +1,84 @@
+"""A ``lax.cond`` that still skips its branch under ``jax.vmap`` when no member needs it.
+
+``jax.vmap`` turns a ``lax.cond`` whose predicate is batched into a ``select``: every member
+of an ensemble then runs *both* branches, every step. For the contact step that is all its
+skipped work at once: all solver sweeps after convergence, the impact pass, the time-of-
+impact search, the second part of a split step. :func:`branch` has the same value as
+``lax.cond`` but its own batching rule: with a batched predicate it runs the first branch
+when some member takes it, the second when some member takes that, and selects per
+member (both run only when the members disagree). An ensemble of similar environments
+mostly agrees, and then costs what one environment does in kernels.
+
+Derivatives are those of ``lax.cond`` (a ``jax.custom_jvp`` whose rule differentiates
+the plain ``lax.cond``), so ``grad`` and ``jvp`` are unchanged; a ``vmap`` *of* a derivative
+batches that plain ``lax.cond`` and runs both branches, as before.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.extend import core as jex_core
+
+__all__ = ["branch"]
+
+
+def branch(pred, true_fn: Callable, false_fn: Callable, *operands):
+    """``lax.cond(pred, true_fn, false_fn, *operands)``, which ``jax.vmap`` keeps a branch.
+
+    Args:
+        pred: scalar bool.
+        true_fn, false_fn: functions of ``*operands`` with the same output structure.
+        operands: pytrees of arrays (``None`` leaves allowed).
+
+    Returns:
+        The taken branch's output. Under ``jax.vmap`` with a batched ``pred``: the
+        same values as ``lax.cond`` (per member), computed by one branch when all members
+        agree.
+    """
+
+    def plain(p, *ops):
+        return jax.lax.cond(p, true_fn, false_fn, *ops)
+
+    # Traced once here, so that the custom rules below close over no tracer (custom_vmap
+    # refuses functions that do): whatever the branches captured becomes explicit consts.
+    closed, out_shape = jax.make_jaxpr(plain, return_shape=True)(pred, *operands)
+    out_tree = jax.tree.structure(out_shape)
+
+    def evaluate(p, ops, consts):
+        flat = jax.tree.leaves((p, ops))
+        return jax.tree.unflatten(out_tree, jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(closed.jaxpr, consts))(*flat))
+
+    @jax.custom_batching.custom_vmap
+    def batched(p, ops, consts):
+        return evaluate(p, ops, consts)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, p, ops, consts):
+        p_batched, ops_batched, consts_batched = in_batched
+        ops = jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), ops, ops_batched)
+        const_axes = jax.tree.map(lambda b: 0 if b else None, consts_batched)
+        yes = jax.vmap(lambda o, c: evaluate(True, o, c), in_axes=(0, const_axes))
+        no = jax.vmap(lambda o, c: evaluate(False, o, c), in_axes=(0, const_axes))
+        if not p_batched:
+            out = jax.lax.cond(p, yes, no, ops, consts)
+        else:
+            # Each branch once (in a cond of its own, skipped when no member takes it), then
+            # a select per member: nesting these does not multiply the compiled code, as
+            # three cases (all, none, mixed) would.
+            idle = lambda o, c: jax.tree.map(jnp.zeros_like, out_batched_shape)  # noqa: E731
+            out_batched_shape = jax.eval_shape(yes, ops, consts)
+            a = jax.lax.cond(jnp.any(p), yes, idle, ops, consts)
+            b = jax.lax.cond(jnp.all(p), idle, no, ops, consts)
+            out = jax.tree.map(lambda x, y: jnp.where(p.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+        return out, jax.tree.map(lambda _: True, out)
+
+    differentiable = jax.custom_jvp(batched)
+
+    @differentiable.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(evaluate, primals, tangents)
+
+    return differentiable(pred, tuple(operands), tuple(closed.consts))
