@@ -68,8 +68,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands):
             # Each branch once (in a cond of its own, skipped when no member takes it), then
             # a select per member: nesting these does not multiply the compiled code, as
             # three cases (all, none, mixed) would.
-            idle = lambda o, c: jax.tree.map(jnp.zeros_like, out_batched_shape)  # noqa: E731
-            out_batched_shape = jax.eval_shape(yes, ops, consts)
+            idle = lambda o, c: jax.tree.map(  # noqa: E731
+                lambda x: jnp.zeros((axis_size, *x.shape), x.dtype), out_shape)
             a = jax.lax.cond(jnp.any(p), yes, idle, ops, consts)
             b = jax.lax.cond(jnp.all(p), idle, no, ops, consts)
             out = jax.tree.map(lambda x, y: jnp.where(p.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
