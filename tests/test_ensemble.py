@@ -78,16 +78,28 @@ def test_shard_ensemble_refuses_unbatched_or_uneven_input():
 # ------------------------------------------------------------------ branches in ensembles
 
 
+def _first(x, y):
+    return jnp.sin(x) * y, x
+
+
+def _second(x, y):
+    return x * y, -x
+
+
+def _reference(pred, x, y):
+    return jax.lax.cond(pred, _first, _second, x, y)
+
+
 def _counted_cond(calls):
-    """``branch`` whose first branch reports each run of itself (a host callback)."""
+    """``branch`` of ``_first`` and ``_second``; the first reports each run of itself (a host callback)."""
     from jaxrb._branch import branch
 
     def taken(x, y):
         jax.debug.callback(lambda: calls.append(1))
-        return jnp.sin(x) * y, x
+        return _first(x, y)
 
     def f(pred, x, y):
-        return branch(pred, taken, lambda x, y: (x * y, -x), x, y)
+        return branch(pred, taken, _second, x, y)
 
     return f
 
@@ -95,14 +107,13 @@ def _counted_cond(calls):
 def test_branch_matches_cond_per_member_and_skips_a_branch_no_member_takes():
     calls = []
     f = _counted_cond(calls)
-    reference = lambda p, x, y: jax.lax.cond(p, lambda x, y: (jnp.sin(x) * y, x), lambda x, y: (x * y, -x), x, y)  # noqa: E731
     x, y = jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
     for pred in ([True, False, True], [True, True, True], [False, False, False]):
         pred = jnp.array(pred)
         calls.clear()
         got = jax.jit(jax.vmap(f))(pred, x, y)
         jax.block_until_ready(got)
-        want = jax.vmap(reference)(pred, x, y)
+        want = jax.vmap(_reference)(pred, x, y)
         for g, w in zip(got, want, strict=True):
             np.testing.assert_array_equal(g, w)
         # The first branch runs once for the whole ensemble when some member takes it, and
@@ -115,11 +126,10 @@ def test_branch_matches_cond_per_member_and_skips_a_branch_no_member_takes():
 
 def test_branch_derivatives_are_those_of_cond():
     f = _counted_cond([])
-    reference = lambda p, x, y: jax.lax.cond(p, lambda x, y: (jnp.sin(x) * y, x), lambda x, y: (x * y, -x), x, y)  # noqa: E731
     loss = lambda g: lambda p, x, y: jnp.sum(g(p, x, y)[0] + 2.0 * g(p, x, y)[1])  # noqa: E731
     pred, x, y = jnp.array([True, False, True]), jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
     for argnums in (1, 2):
-        want = jax.vmap(jax.grad(loss(reference), argnums))(pred, x, y)
+        want = jax.vmap(jax.grad(loss(_reference), argnums))(pred, x, y)
         np.testing.assert_allclose(jax.vmap(jax.grad(loss(f), argnums))(pred, x, y), want, rtol=1e-15)
         np.testing.assert_allclose(jax.grad(lambda x, y: jnp.sum(jax.vmap(loss(f))(pred, x, y)), argnums - 1)(x, y),
                                    want, rtol=1e-15)
