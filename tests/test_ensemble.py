@@ -90,7 +90,7 @@ def _reference(pred, x, y):
     return jax.lax.cond(pred, _first, _second, x, y)
 
 
-def _counted_cond(calls):
+def _counted_cond(calls, recompute_in_reverse=False):
     """``branch`` of ``_first`` and ``_second``; the first reports each run of itself (a host callback)."""
     from jaxrb._branch import branch
 
@@ -99,7 +99,7 @@ def _counted_cond(calls):
         return _first(x, y)
 
     def f(pred, x, y):
-        return branch(pred, taken, _second, x, y)
+        return branch(pred, taken, _second, x, y, recompute_in_reverse=recompute_in_reverse)
 
     return f
 
@@ -124,8 +124,9 @@ def test_branch_matches_cond_per_member_and_skips_a_branch_no_member_takes():
     np.testing.assert_array_equal(got[0], x * y)
 
 
-def test_branch_derivatives_are_those_of_cond():
-    f = _counted_cond([])
+@pytest.mark.parametrize("recompute_in_reverse", [False, True])
+def test_branch_derivatives_are_those_of_cond(recompute_in_reverse):
+    f = _counted_cond([], recompute_in_reverse)
     loss = lambda g: lambda p, x, y: jnp.sum(g(p, x, y)[0] + 2.0 * g(p, x, y)[1])  # noqa: E731
     pred, x, y = jnp.array([True, False, True]), jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
     for argnums in (1, 2):
@@ -135,6 +136,10 @@ def test_branch_derivatives_are_those_of_cond():
                                    want, rtol=1e-15)
         np.testing.assert_allclose(jax.jacfwd(lambda x, y: jax.vmap(loss(f))(pred, x, y), argnums - 1)(x, y),
                                    jnp.diag(want), rtol=1e-15)
+    # Second order, through the checkpointed linearisation too.
+    for p in (True, False):
+        np.testing.assert_allclose(jax.hessian(loss(f), (1, 2))(p, x, y), jax.hessian(loss(_reference), (1, 2))(p, x, y),
+                                   rtol=1e-15, atol=1e-15)
 
 
 def test_contact_ensemble_equals_its_members_run_one_by_one():
