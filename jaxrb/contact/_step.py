@@ -335,8 +335,9 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     ``lax.cond``'s linearisation outputs the residuals of both branches (zero-filled for the
     one not taken) and reverse mode would stack them at every step of a rollout; a
     checkpoint's residuals are its inputs. The cond itself is a :func:`branch` with
-    ``recompute_in_reverse``, for the same reason one level up. The whole step is checkpointed by its callers
-    (``rollout`` and ``Step.__call__``, with :data:`SAVE_NAMED`), once. A second
+    ``recompute_in_reverse``, for the same reason one level up. The whole step is
+    checkpointed by its callers (``rollout`` and ``Step.__call__``, with
+    :data:`SAVE_NAMED`), once. A second
     checkpoint here, nested in theirs, gave the same gradients to the last bit and the
     same run times, and only slowed compilation: ``jax.jacrev`` of a 10-step two-ball
     rollout traced in 23.5 s with it and 17.1 s without (one run each); the 1000-step
