@@ -24,6 +24,8 @@ def _rotate_about_principal_axis(pose, k: int, angle):
     ``P`` as ``(q_w, q_x, q_y, q_z, P_x, P_y, P_z)`` (7,). ``q`` becomes
     ``q (cos a/2, sin a/2 e)`` and ``P`` turns the opposite way, ``Rot(e, -a) P``
     (Rodrigues' formula with ``e`` a coordinate axis: only the two other components move).
+    ``cos a`` and ``sin a`` come from the half angle's by the double-angle formulas: one sine
+    and one cosine per rotation, and the same rotation of ``q`` and ``P`` to rounding.
     """
     i, j = (k + 1) % 3, (k + 2) % 3  # (i, j, k) cyclic
     c, s = jnp.cos(0.5 * angle), jnp.sin(0.5 * angle)
@@ -32,7 +34,7 @@ def _rotate_about_principal_axis(pose, k: int, angle):
     q[1 + k] = c * v[k] + s * w
     q[1 + i] = c * v[i] + s * v[j]  # (v x e)_i = v_j, (v x e)_j = -v_i
     q[1 + j] = c * v[j] - s * v[i]
-    cos_full, sin_full = jnp.cos(angle), jnp.sin(angle)
+    cos_full, sin_full = c * c - s * s, 2.0 * s * c
     momentum = [None, None, None]
     momentum[k] = p[k]
     momentum[i] = cos_full * p[i] + sin_full * p[j]
