@@ -44,17 +44,30 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         agree.
     """
 
-    def plain(p, *ops):
-        return jax.lax.cond(p, true_fn, false_fn, *ops)
+    # Each branch is traced once here, to a jaxpr of its own: the custom rules below then
+    # close over no tracer (custom_vmap refuses functions that do; whatever the branches
+    # captured becomes explicit consts), and a rule that knows which branch it runs binds
+    # that branch alone. (One jaxpr of the whole cond, evaluated with a constant predicate,
+    # carried both branches through every transformation: the ball's gradient traced and
+    # compiled the free and the contact step twice more than it ran them.)
+    (true_jaxpr, true_shape), (false_jaxpr, false_shape) = (
+        jax.make_jaxpr(fn, return_shape=True)(*operands) for fn in (true_fn, false_fn))
+    out_tree = jax.tree.structure(true_shape)
+    if jax.tree.structure(false_shape) != out_tree:
+        raise TypeError(f"branch: true_fn and false_fn must return the same structure, got {out_tree} "
+                        f"and {jax.tree.structure(false_shape)}.")
+    out_shape = jax.tree.unflatten(out_tree, [_joined(a, b) for a, b in zip(
+        jax.tree.leaves(true_shape), jax.tree.leaves(false_shape), strict=True)])
 
-    # Traced once here, so that the custom rules below close over no tracer (custom_vmap
-    # refuses functions that do): whatever the branches captured becomes explicit consts.
-    closed, out_shape = jax.make_jaxpr(plain, return_shape=True)(pred, *operands)
-    out_tree = jax.tree.structure(out_shape)
+    def run(take: bool, ops, consts):
+        closed, branch_consts = (true_jaxpr, consts[0]) if take else (false_jaxpr, consts[1])
+        out = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(closed.jaxpr, branch_consts))(*jax.tree.leaves(ops))
+        return jax.tree.unflatten(out_tree, [_as(x, s) for x, s in zip(out, jax.tree.leaves(out_shape), strict=True)])
 
     def evaluate(p, ops, consts):
-        flat = jax.tree.leaves((p, ops))
-        return jax.tree.unflatten(out_tree, jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(closed.jaxpr, consts))(*flat))
+        if isinstance(p, bool):
+            return run(p, ops, consts)
+        return jax.lax.cond(p, lambda o, c: run(True, o, c), lambda o, c: run(False, o, c), ops, consts)
 
     @jax.custom_batching.custom_vmap
     def batched(p, ops, consts):
@@ -103,4 +116,22 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
         return jax.lax.cond(p, linearised(True), linearised(False), ops, consts, ops_dot, consts_dot)
 
-    return differentiable(pred, tuple(operands), tuple(closed.consts))
+    return differentiable(pred, tuple(operands), (tuple(true_jaxpr.consts), tuple(false_jaxpr.consts)))
+
+
+def _joined(a: jax.ShapeDtypeStruct, b: jax.ShapeDtypeStruct) -> jax.ShapeDtypeStruct:
+    """The type of an output that either branch may produce, joined as ``lax.cond`` joins
+    them: a weakly typed value (a Python scalar's) takes the other branch's dtype."""
+    if a.shape == b.shape and a.dtype == b.dtype:
+        return jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type and b.weak_type)
+    if a.shape == b.shape and a.weak_type != b.weak_type:
+        return jax.ShapeDtypeStruct(a.shape, (b if a.weak_type else a).dtype)
+    raise TypeError(f"branch: true_fn and false_fn must return the same shapes and dtypes, got "
+                    f"{a.dtype}{list(a.shape)} and {b.dtype}{list(b.shape)}.")
+
+
+def _as(x, like: jax.ShapeDtypeStruct):
+    """``x`` with the joined output's type."""
+    if x.dtype != like.dtype or (jax.typeof(x).weak_type and not like.weak_type):
+        return jax.lax.convert_element_type(x, like.dtype)
+    return x

@@ -142,6 +142,55 @@ def test_branch_derivatives_are_those_of_cond(recompute_in_reverse):
         np.testing.assert_allclose(jax.hessian(loss(f), (1, 2))(p, x, y), want, rtol=1e-15, atol=1e-15)
 
 
+def _primitive_count(jaxpr, name: str) -> int:
+    """How many ``name`` equations a jaxpr holds, sub-jaxprs (cond branches, scans) included."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == name
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else [value]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    count += _primitive_count(inner, name)
+    return count
+
+
+@pytest.mark.parametrize("recompute_in_reverse", [False, True])
+def test_branch_puts_each_branch_in_the_program_once_per_use(recompute_in_reverse):
+    """A rule that knows which branch it runs (a batched predicate's, a linearised branch's)
+    binds that branch alone, not a cond of both with a constant predicate: the programs
+    hold each branch as often as they can run it."""
+    from jaxrb._branch import branch
+
+    def f(pred, x):
+        return branch(pred, jnp.sin, jnp.cos, x, recompute_in_reverse=recompute_in_reverse)
+
+    pred, x = jnp.array([True, False, True]), jnp.array([0.3, -1.2, 2.0])
+    vmapped = jax.make_jaxpr(jax.vmap(f))(pred, x).jaxpr
+    assert _primitive_count(vmapped, "sin") == 1 and _primitive_count(vmapped, "cos") == 1
+    linearised = jax.make_jaxpr(lambda p, x: jax.jvp(lambda x: f(p, x), (x,), (jnp.ones_like(x),)))(True, x[0])
+    # The primal cond, then the linearised one: its sin branch has sin (value) and cos
+    # (derivative) and its cos branch cos and sin.
+    assert _primitive_count(linearised.jaxpr, "sin") == 2 and _primitive_count(linearised.jaxpr, "cos") == 2
+    np.testing.assert_allclose(jax.vmap(f)(pred, x), jnp.where(pred, jnp.sin(x), jnp.cos(x)), rtol=1e-15)
+
+
+def test_branch_joins_weak_types_and_refuses_mismatched_branches():
+    from jaxrb._branch import branch
+
+    x = jnp.asarray(2.0, jnp.float32)
+    for pred in (True, False):
+        got = branch(jnp.asarray(pred), lambda x: 1.0, lambda x: x, x)  # a Python float against float32
+        assert got.dtype == jnp.float32 and not jax.typeof(got).weak_type
+        assert float(got) == (1.0 if pred else 2.0)
+        batched = jax.vmap(lambda p: branch(p, lambda x: 1.0, lambda x: x, x))(jnp.array([pred, not pred]))
+        assert batched.dtype == jnp.float32 and not jax.typeof(batched).weak_type
+    with pytest.raises(TypeError, match="same shapes and dtypes"):
+        branch(jnp.asarray(True), lambda x: x, lambda x: jnp.stack([x, x]), x)
+    with pytest.raises(TypeError, match="same structure"):
+        branch(jnp.asarray(True), lambda x: (x, x), lambda x: x, x)
+
+
 def test_contact_ensemble_equals_its_members_run_one_by_one():
     """A vmapped rollout (bouncing balls at different heights, some in flight and some in
     contact at each step, and a box stack with different frictions) equals each member's
