@@ -46,10 +46,10 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
     # Each branch is traced once here, to a jaxpr of its own: the custom rules below then
     # close over no tracer (custom_vmap refuses functions that do; whatever the branches
-    # captured becomes explicit consts), and a rule that knows which branch it runs binds
-    # that branch alone. (One jaxpr of the whole cond, evaluated with a constant predicate,
-    # carried both branches through every transformation: the ball's gradient traced and
-    # compiled the free and the contact step twice more than it ran them.)
+    # captured becomes explicit consts), and the batching rule, which knows which branch
+    # each of its conds runs, binds that branch alone. (One jaxpr of the whole cond,
+    # evaluated with a constant predicate, carried both branches into each: a 64-member
+    # stack's rollout lowered to 28,524 lines of StableHLO, 14,176 now.)
     (true_jaxpr, true_shape), (false_jaxpr, false_shape) = (
         jax.make_jaxpr(fn, return_shape=True)(*operands) for fn in (true_fn, false_fn))
     out_tree = jax.tree.structure(true_shape)
@@ -111,7 +111,12 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
         def linearised(take):
             def run(o, c, o_dot, c_dot):
-                return jax.jvp(lambda o, c: evaluate(take, o, c), (o, c), (o_dot, c_dot))
+                # The cond of both branches with a constant predicate, not the taken branch
+                # alone: the same values, but the ball's gradient ran 6-9% faster this way
+                # (6.62 and 6.53 against 7.02 ms, minima of 60 in alternating processes; jax
+                # 0.10.2, XLA:CPU), though its program is 16% larger (XLA removes the dead
+                # branch; it seems to schedule the inlined one better than the bare branch).
+                return jax.jvp(lambda o, c: evaluate(jnp.asarray(take), o, c), (o, c), (o_dot, c_dot))
             return jax.checkpoint(run)
 
         return jax.lax.cond(p, linearised(True), linearised(False), ops, consts, ops_dot, consts_dot)
