@@ -114,8 +114,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
                 # The cond of both branches with a constant predicate, not the taken branch
                 # alone: the same values, but the ball's gradient ran 6-9% faster this way
                 # (6.62 and 6.53 against 7.02 ms, minima of 60 in alternating processes; jax
-                # 0.10.2, XLA:CPU), though its program is 16% larger (XLA removes the dead
-                # branch; it seems to schedule the inlined one better than the bare branch).
+                # 0.10.2, XLA:CPU), though its program is 16% larger. Why is not known: XLA
+                # removes the dead branch, so the difference is in how it compiles the rest.
                 return jax.jvp(lambda o, c: evaluate(jnp.asarray(take), o, c), (o, c), (o_dot, c_dot))
             return jax.checkpoint(run)
 
