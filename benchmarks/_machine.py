@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import platform
 import resource
 import subprocess
@@ -35,8 +36,36 @@ def record_header(script: str, argv) -> dict:
     return {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join(["python", f"benchmarks/{script}", *args]),
-        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__},
+        "commit": source_commit(),
+        "machine": {"cpu": cpu_model(), "device": str(jax.devices()[0]), "jax": jax.__version__,
+                    # Timings on these shared 2-core machines move with their load: the
+                    # same gradient/forward ratio was 4.08x at a load of 0.9 and 4.31x at 1.6.
+                    "load_1min_at_start": load_average()},
     }
+
+
+def load_average() -> float | None:
+    """The machine's 1-minute load average (runnable processes), or None where unknown."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return None
+
+
+def source_commit() -> str | None:
+    """The git commit of the code being measured (``jaxrb/``, ``benchmarks/*.py``), with
+    ``+changes`` when that code differs from it; None outside a git checkout."""
+    here = Path(__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        changed = git("status", "--porcelain", "--untracked-files=no", "--", "../jaxrb", "*.py")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return commit + ("+changes" if changed else "")
 
 
 def json_from_python(python: str, code: str, marker: str, timeout: int = 3600) -> dict:
