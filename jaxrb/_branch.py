@@ -59,15 +59,14 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
     out_shape = jax.tree.unflatten(out_tree, [_joined(a, b) for a, b in zip(
         jax.tree.leaves(true_shape), jax.tree.leaves(false_shape), strict=True)])
 
-    def run(take: bool, ops, consts):
+    def run_branch(take: bool, ops, consts):
+        """The branch ``take`` names, alone (no cond)."""
         closed, branch_consts = (true_jaxpr, consts[0]) if take else (false_jaxpr, consts[1])
         out = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(closed.jaxpr, branch_consts))(*jax.tree.leaves(ops))
         return jax.tree.unflatten(out_tree, [_as(x, s) for x, s in zip(out, jax.tree.leaves(out_shape), strict=True)])
 
     def evaluate(p, ops, consts):
-        if isinstance(p, bool):
-            return run(p, ops, consts)
-        return jax.lax.cond(p, lambda o, c: run(True, o, c), lambda o, c: run(False, o, c), ops, consts)
+        return jax.lax.cond(p, lambda o, c: run_branch(True, o, c), lambda o, c: run_branch(False, o, c), ops, consts)
 
     @jax.custom_batching.custom_vmap
     def batched(p, ops, consts):
@@ -78,8 +77,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         p_batched, ops_batched, consts_batched = in_batched
         ops = jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), ops, ops_batched)
         const_axes = jax.tree.map(lambda b: 0 if b else None, consts_batched)
-        yes = jax.vmap(lambda o, c: evaluate(True, o, c), in_axes=(0, const_axes))
-        no = jax.vmap(lambda o, c: evaluate(False, o, c), in_axes=(0, const_axes))
+        yes = jax.vmap(lambda o, c: run_branch(True, o, c), in_axes=(0, const_axes))
+        no = jax.vmap(lambda o, c: run_branch(False, o, c), in_axes=(0, const_axes))
         if not p_batched:
             out = jax.lax.cond(p, yes, no, ops, consts)
         else:
