@@ -17,19 +17,27 @@ from ._composition import kick_drift_kick
 __all__ = ["SymplecticSplitting"]
 
 
-def _rotate_about_principal_axis(pose, k: int, angle):
-    """Rotate the body about its ``k``-th principal axis ``e`` by ``angle`` (rad).
+def _rotate_about_principal_axis(pose, k: int, rate):
+    """Rotate the body about its ``k``-th principal axis ``e`` by ``a = rate P_k`` (rad).
 
     ``pose`` packs the attitude ``q`` (principal frame to world) and the body momentum
-    ``P`` as ``(q_w, q_x, q_y, q_z, P_x, P_y, P_z)`` (7,). ``q`` becomes
+    ``P`` as ``(q_w, q_x, q_y, q_z, P_x, P_y, P_z)`` (7,); ``rate`` is the sub-flow's
+    duration over the principal moment, ``dt_sub / I_k`` (s/(kg m^2)). ``q`` becomes
     ``q (cos a/2, sin a/2 e)`` and ``P`` turns the opposite way, ``Rot(e, -a) P``
     (Rodrigues' formula with ``e`` a coordinate axis: only the two other components move).
     ``cos a`` and ``sin a`` come from the half angle's by the double-angle formulas: one sine
     and one cosine per rotation, and the same rotation of ``q`` and ``P`` to rounding.
     """
     i, j = (k + 1) % 3, (k + 2) % 3  # (i, j, k) cyclic
-    c, s = jnp.cos(0.5 * angle), jnp.sin(0.5 * angle)
-    w, v, p = pose[0], pose[1:4], pose[4:]
+    # One split, not an index read per component: reverse mode transposes it to one
+    # concatenation, where each read became a zero-padded copy of its own (the ball's
+    # gradient: 21 pad kernels a step). The pieces are made scalars again, and stacked at
+    # the end as before: left (1,)-shaped and concatenated, the chain ran 1.7x slower for
+    # 4096 vmapped bodies (benchmarks/README.md, "Sub-rotations read by one split").
+    w, *rest = [x.reshape(()) for x in jnp.split(pose, 7)]
+    v, p = rest[:3], rest[3:]
+    half_angle = 0.5 * rate * p[k]
+    c, s = jnp.cos(half_angle), jnp.sin(half_angle)
     q = [w * c - s * v[k], None, None, None]  # q (c, s e) = (w c - s v.e, c v + s w e + s v x e)
     q[1 + k] = c * v[k] + s * w
     q[1 + i] = c * v[i] + s * v[j]  # (v x e)_i = v_j, (v x e)_j = -v_i
@@ -96,7 +104,7 @@ class SymplecticSplitting(Integrator):
         def sub_rotations(moments, q, momentum):
             pose = jnp.concatenate([q, momentum])
             for k, fraction in flows:
-                pose = _rotate_about_principal_axis(pose, k, fraction * dt * pose[4 + k] / moments[k])
+                pose = _rotate_about_principal_axis(pose, k, fraction * dt / moments[k])
                 # The barrier keeps each rotation its own kernel: fused into one, XLA:CPU
                 # recomputed the chain's shared terms exponentially (each extra rotation
                 # ~5x slower; the vmapped step 20x slower than RK4).
