@@ -384,6 +384,20 @@ def test_sliding_sphere_starts_rolling():
     np.testing.assert_allclose(t_roll, 2 * 2.0 / (7 * 0.2 * G), rtol=1e-2)
 
 
+def test_off_centre_sphere_rests_on_its_shape_not_its_centre_of_mass():
+    """A sphere (r = 0.1 m) whose centre of mass is 5 cm from its centre, turned so that the
+    centre of mass is below the centre: it rests with the centre of mass 5 cm above the
+    ground. (Contacts must place the shape by ``shape_offset``; a centred body skips that.)"""
+    mp = rb.inertia.MassProperties(1.0, (0.05, 0.0, 0.0), 4e-3 * np.eye(3))
+    scene = rb.Scene([rb.Body("weeble", shape=rb.Sphere(0.1), mass_properties=mp)], ground=rb.Plane(),
+                     contacts="all")
+    params = scene.params(restitution=0.0, friction=0.5)
+    down = (np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0)  # body x -> world -z
+    state = scene.state(params, position=(0.0, 0.0, 0.06), orientation=down)
+    final, _ = rb.rollout(rb.make_step(scene, SPLIT, 1e-3), params, state, 500)
+    np.testing.assert_allclose(float(final.position[0, 2]), 0.05, atol=1e-3)
+
+
 # ================================================================ resting contact
 
 

@@ -159,7 +159,13 @@ def build_layout(scene: Scene) -> Layout:
 
 def _shape_poses(scene: Scene, state: State):
     """World pose of every body's shape frame: ``(N, 3)`` positions, ``(N, 4)`` orientations."""
-    offsets = jnp.asarray([b.shape_offset for b in scene.bodies], dtype=state.position.dtype)
+    offsets = np.asarray([b.shape_offset for b in scene.bodies], dtype=float)
+    if not offsets.any():
+        # Shapes centred on their bodies (the usual case): no rotation of zero offsets,
+        # which XLA cannot fold away (0 * x is not 0 for every float x), and which kept
+        # the whole attitude path of the step's separations alive for a ball.
+        return state.position, state.orientation
+    offsets = jnp.asarray(offsets, dtype=state.position.dtype)
     return state.position + spatial.quat_rotate(state.orientation, offsets), state.orientation
 
 
