@@ -33,7 +33,6 @@ It prints a table and writes ``contacts.json`` and ``contacts.png`` to ``--out``
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import math
 import sys
@@ -48,7 +47,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import cpu_model, json_from_python, timed  # noqa: E402
+from _machine import json_from_python, record_header, timed  # noqa: E402
 
 G = 9.81
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
@@ -194,6 +193,7 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="tiny sizes, temp output dir (CI smoke run)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
+    header = record_header("contacts.py", argv)  # the load is the one at the start
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     dtype = jnp.float64 if args.x64 else jnp.float32
@@ -235,11 +235,8 @@ def main(argv=None):
             else:
                 results[scene][key.split("_")[0]] = value
     print_table(results)
-    record = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "jax": jax.__version__,
-              "jaxrb": rb.__version__, "cpu_model": cpu_model(),
-              "backend": jax.default_backend(), "dtype": str(jnp.dtype(dtype)), "envs": args.envs,
-              "command": " ".join(["python", "benchmarks/contacts.py", *(argv or sys.argv[1:])]),
-              "results": results}
+    record = {**header, "jaxrb": rb.__version__, "backend": jax.default_backend(),
+              "dtype": str(jnp.dtype(dtype)), "envs": args.envs, "results": results}
     (out / "contacts.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
     plot({k: v for k, v in results.items() if k != "peers"}, out / "contacts.png")
     print(f"\nwrote {out / 'contacts.json'} and {out / 'contacts.png'}")

@@ -78,6 +78,7 @@ def test_work_precision_benchmark_quick(tmp_path):
 @pytest.mark.slow
 def test_contacts_benchmark_quick(tmp_path):
     record = load("contacts").main(["--quick", "--no-peers", "--out", str(tmp_path)])
+    assert {"commit", "machine"} <= set(record) and "load_1min_at_start" in record["machine"]
     results = record["results"]
     assert set(results) >= {"box_stack", "ball_drop"}
     for engines in (results["box_stack"], results["ball_drop"]):
