@@ -92,6 +92,10 @@ def test_contacts_benchmark_quick(tmp_path):
     for engines in (results["box_stack"], results["ball_drop"]):
         for r in engines.values():
             assert r["finite"] and r["compile_s"] > 0 and r["steps_per_s_1env"] > 0
+    # The stack is timed over the whole scene (20 steps here, as a chain of 5-step calls),
+    # as the peers' calls are, and its first call alone.
+    stack = results["box_stack"]["jaxrb pgs"]
+    assert stack["timed_steps_1env"] == 20 and stack["steps_per_s_1env_first_5"] > 0
     assert (tmp_path / "contacts.png").stat().st_size > 0
 
 
