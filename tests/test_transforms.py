@@ -241,3 +241,90 @@ def test_rollout_include_initial_and_replace():
     assert float(heavier.mass[0]) == 2 * float(params.mass[0]) and heavier.inertia is params.inertia
     moved = state.replace(position=state.position + 1.0)
     np.testing.assert_array_equal(moved.position, state.position + 1.0)
+
+
+
+def _bouncing_ball():
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-2)
+    params = scene.params(restitution=0.8, friction=0.5)
+    # 0.35 m clearance, 0.3 s: the ball lands and bounces inside the rollout.
+    state = step.prepare(scene.state(params, position=(0.0, 0.0, 0.45), velocity=(0.3, 0.0, 0.0),
+                                     angular_velocity=(0.0, 2.0, 0.0)))
+    return step, params, state
+
+
+def test_chunked_recording_equals_the_step_by_step_loop():
+    """rollout(save_every=1) records a small scene's states in chunks of steps (a faster
+    loop on XLA:CPU): the same trajectory as the step-by-step loop, bit for bit, alone and
+    under vmap."""
+    from jaxrb.simulate import _chunk_length, _scan_steps
+
+    step, params, state = _bouncing_ball()
+    steps = 30
+    chunk = _chunk_length(state, steps)
+    assert chunk > 1 and steps % chunk == 0  # the chunked path is the one under test
+
+    def by_step(p, s):
+        return _scan_steps(step, p, s, steps, 1, False, 1)
+
+    final, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, steps))(params, state)
+    final_ref, traj_ref = jax.jit(by_step)(params, state)
+    assert traj.position.shape == (steps, 1, 3)
+    assert float(traj_ref.position[:, 0, 2].min()) < 0.11  # it reached the ground and bounced
+    for x, y in zip(jax.tree.leaves((final, traj)), jax.tree.leaves((final_ref, traj_ref)), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(jnp.array([0.45, 0.6]))
+    batched = jax.jit(jax.vmap(lambda s: rb.rollout(step, params, s, steps)[1].position))(starts)
+    for i in range(2):
+        one = jax.tree.map(lambda x, i=i: x[i], starts)
+        np.testing.assert_array_equal(batched[i], jax.jit(by_step)(params, one)[1].position)
+
+
+def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
+    """Its custom JVP takes them from the step-by-step loop, differentiating only what has
+    a tangent: reverse mode with respect to both arguments, either one alone, and forward
+    mode, all as through the plain loop. (A free body: the rule does not depend on the
+    scene, and its programs compile in seconds.)"""
+    from jaxrb.simulate import _chunk_length, _scan_steps
+
+    scene = make_scene(num_bodies=1)
+    params, state = initial(scene)
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-2)
+    steps = 40
+    assert _chunk_length(state, steps) > 1
+
+    def loss(run):
+        return lambda p, s: pose_loss(run(p, s)[0]) + jnp.sum(run(p, s)[1].orientation[:, 0, 1] ** 2)
+
+    chunked = loss(lambda p, s: rb.rollout(step, p, s, steps))
+    by_step = loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
+    g_ref = jax.jit(jax.grad(by_step, argnums=(0, 1)))(params, state)
+    g = jax.jit(jax.grad(chunked, argnums=(0, 1)))(params, state)
+    assert_trees_close(g, g_ref, rtol=1e-13, atol=1e-13)
+    assert_trees_close(jax.jit(jax.grad(chunked))(params, state), g_ref[0], rtol=1e-13, atol=1e-13)
+    assert_trees_close(jax.jit(jax.grad(chunked, argnums=1))(params, state), g_ref[1], rtol=1e-13, atol=1e-13)
+    d_mass = jax.jit(jax.jacfwd(lambda m: chunked(params.replace(mass=m), state)))(params.mass)
+    np.testing.assert_allclose(d_mass, g_ref[0].mass, rtol=1e-12)
+    assert float(jnp.max(jnp.abs(g_ref[0].inertia))) > 1e-3  # the loss depends on the attitude
+
+
+def test_chunk_length_fits_the_sequential_threshold():
+    from jaxrb.simulate import MAX_CHUNK, SEQUENTIAL_BUFFER_BYTES, _chunk_length
+
+    _, _, state = _bouncing_ball()
+    largest = max(x.size * x.dtype.itemsize for x in jax.tree.leaves(state))  # the (1, 4) float64 quaternion
+    assert largest == 32
+    assert _chunk_length(state, 1000) == 10  # the largest divisor of 1000 that is <= 16 with 32 bytes each
+    assert _chunk_length(state, 997) == 1  # prime: no chunks
+    assert _chunk_length(state, 4) == 4
+    for steps in [12, 100, 1000, 4096]:
+        chunk = _chunk_length(state, steps)
+        assert steps % chunk == 0 and chunk <= MAX_CHUNK and chunk * largest <= SEQUENTIAL_BUFFER_BYTES
+    boxes = [rb.Body(f"box{i}", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0) for i in range(5)]
+    stack = rb.Scene(boxes, ground=rb.Plane(), contacts="all")
+    stack_step = rb.make_step(stack, rb.integrators.SymplecticSplitting(), 1e-3)
+    stack_params = stack.params(dtype=jnp.float32)
+    stack_state = stack_step.prepare(stack.state(stack_params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)]))
+    assert _chunk_length(stack_state, 1000) == 1  # 60 contact impulses: 720 bytes a state
