@@ -10,14 +10,12 @@ are traced, so new values never recompile.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
 
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
@@ -191,42 +189,7 @@ def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: b
     chunk = 1
     if isinstance(step, Step) and save_every == 1 and not checkpoint:
         chunk = _chunk_length(state, num_steps)
-    if chunk == 1:
-        return _scan_steps(step, params, state, num_steps, save_every, checkpoint, 1)
-    # The step's arrays (if any) are passed explicitly, so that derivatives reach them too.
-    dynamic, static = eqx.partition(step, eqx.is_array)
-    return _recorded_in_chunks(static, num_steps, chunk, params, state, dynamic)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
-def _recorded_in_chunks(static, num_steps: int, chunk: int, params, state, dynamic):
-    """:func:`_scan_steps` recording every state, in chunks of ``chunk`` steps (see
-    :func:`_chunk_length`). Its derivatives are those of the unchunked loop, computed by
-    it: the same values to the last bit, and the gradient's program as without chunks
-    (nested loops made the ball's gradient up to 5% slower by medians: their residuals do
-    not fit the sequential threshold, and the transposed loops nest too)."""
-    return _scan_steps(eqx.combine(dynamic, static), params, state, num_steps, 1, False, chunk)
-
-
-def _recorded_in_chunks_jvp(static, num_steps, chunk, primals, tangents):
-    def unchunked(params, state, dynamic):
-        return _scan_steps(eqx.combine(dynamic, static), params, state, num_steps, 1, False, 1)
-
-    # Only the inputs with a tangent are differentiated (as without the custom rule): a
-    # zero tangent instantiated would cost a tangent pass of its own, and 0 * inf = NaN.
-    leaves, tree = jax.tree.flatten(primals)
-    t_leaves = jax.tree.leaves(tangents, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    zero = [isinstance(t, SymbolicZero) for t in t_leaves]
-
-    def of_active(*active):
-        it = iter(active)
-        return unchunked(*jax.tree.unflatten(tree, [x if z else next(it) for x, z in zip(leaves, zero, strict=True)]))
-
-    return jax.jvp(of_active, [x for x, z in zip(leaves, zero, strict=True) if not z],
-                   [t for t, z in zip(t_leaves, zero, strict=True) if not z])
-
-
-_recorded_in_chunks.defjvp(_recorded_in_chunks_jvp, symbolic_zeros=True)
+    return _scan_steps(step, params, state, num_steps, save_every, checkpoint, chunk)
 
 
 def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint: bool, chunk: int):
@@ -352,7 +315,7 @@ def rollout(
 
     With ``save_every=1`` and a scene of a few bodies, the states are stacked in chunks
     of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
-    ball's forward by 25%); values and derivatives are those of the step-by-step loop.
+    ball's forward by 25%), with the values of the step-by-step loop.
 
     Returns:
         ``final``: the state after ``num_steps`` steps. ``trajectory``: the states after

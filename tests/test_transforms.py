@@ -283,10 +283,9 @@ def test_chunked_recording_equals_the_step_by_step_loop():
 
 
 def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
-    """Its custom JVP takes them from the step-by-step loop, differentiating only what has
-    a tangent: reverse mode with respect to both arguments, either one alone, and forward
-    mode, all as through the plain loop. (A free body: the rule does not depend on the
-    scene, and its programs compile in seconds.)"""
+    """Reverse mode with respect to both arguments and to either alone, forward mode, and
+    both under vmap in either order, as through the plain loop. (A free body: the nested
+    loops do not depend on the scene, and its programs compile in seconds.)"""
     from jaxrb.simulate import _chunk_length, _scan_steps
 
     scene = make_scene(num_bodies=1)
@@ -308,6 +307,24 @@ def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     d_mass = jax.jit(jax.jacfwd(lambda m: chunked(params.replace(mass=m), state)))(params.mass)
     np.testing.assert_allclose(d_mass, g_ref[0].mass, rtol=1e-12)
     assert float(jnp.max(jnp.abs(g_ref[0].inertia))) > 1e-3  # the loss depends on the attitude
+
+    # Two starting heights, vmapped inside and outside jacfwd (the fitters' pattern; a
+    # custom JVP tried here once returned this Jacobian with its axes swapped).
+    def heights(m, z):
+        s = state.replace(position=state.position.at[0, 2].set(z))
+        return rb.rollout(step, params.replace(mass=m), s, steps)[1].position[:, 0, 2]
+
+    zs = jnp.array([1.0, 2.0])
+    inside = jax.jit(jax.vmap(jax.jacfwd(heights), in_axes=(None, 0)))(params.mass, zs)
+    outside = jax.jit(jax.jacfwd(lambda m: jax.vmap(heights, in_axes=(None, 0))(m, zs)))(params.mass)
+    assert inside.shape == outside.shape == (2, steps, 1)
+    np.testing.assert_allclose(inside, outside, rtol=1e-13, atol=1e-15)
+    for i, z in enumerate(zs):
+        s = state.replace(position=state.position.at[0, 2].set(z))
+        ref = jax.jacfwd(lambda m, s=s: _scan_steps(step, params.replace(mass=m), s, steps, 1, False, 1)[1]
+                         .position[:, 0, 2])(params.mass)
+        np.testing.assert_allclose(inside[i], ref, rtol=1e-12, atol=1e-15)
+    assert float(jnp.max(jnp.abs(outside))) > 1e-6  # linear damping: the heights depend on the mass
 
 
 def test_chunk_length_fits_the_sequential_threshold():
