@@ -244,23 +244,25 @@ def test_rollout_include_initial_and_replace():
 
 
 
-def _bouncing_ball():
+def _bouncing_ball(dtype=None):
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-2)
-    params = scene.params(restitution=0.8, friction=0.5)
+    params = scene.params(restitution=0.8, friction=0.5, dtype=dtype)
     # 0.35 m clearance, 0.3 s: the ball lands and bounces inside the rollout.
     state = step.prepare(scene.state(params, position=(0.0, 0.0, 0.45), velocity=(0.3, 0.0, 0.0),
-                                     angular_velocity=(0.0, 2.0, 0.0)))
+                                     angular_velocity=(0.0, 2.0, 0.0), dtype=dtype))
     return step, params, state
 
 
-def test_chunked_recording_equals_the_step_by_step_loop():
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
+def test_chunked_recording_equals_the_step_by_step_loop(dtype):
     """rollout(save_every=1) records a small scene's states in chunks of steps (a faster
     loop on XLA:CPU): the same trajectory as the step-by-step loop, bit for bit, alone and
     under vmap."""
     from jaxrb.simulate import _chunk_length, _scan_steps
 
-    step, params, state = _bouncing_ball()
+    step, params, state = _bouncing_ball(dtype)
+    assert state.position.dtype == dtype
     steps = 30
     chunk = _chunk_length(state, steps)
     assert chunk > 1 and steps % chunk == 0  # the chunked path is the one under test
@@ -275,7 +277,7 @@ def test_chunked_recording_equals_the_step_by_step_loop():
     for x, y in zip(jax.tree.leaves((final, traj)), jax.tree.leaves((final_ref, traj_ref)), strict=True):
         np.testing.assert_array_equal(x, y)
 
-    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(jnp.array([0.45, 0.6]))
+    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(jnp.array([0.45, 0.6], dtype))
     batched = jax.jit(jax.vmap(lambda s: rb.rollout(step, params, s, steps)[1].position))(starts)
     for i in range(2):
         one = jax.tree.map(lambda x, i=i: x[i], starts)
