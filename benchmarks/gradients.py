@@ -9,6 +9,11 @@ What it measures
       ``(e, mu, mass)`` (``jax.jacfwd``), with their compile times. The three are timed in
       turn over 40 interleaved rounds after a warm-up; the ratio of the minima (and, beside
       it, of the medians) gradient / forward is the figure of merit.
+    * ``bounce`` also splits that cost, in the same rounds: the same two compiled programs
+      from a start high enough that no step of the rollout comes near the ground (every
+      step takes the free-step branch), and the same ball in a scene that declares no
+      contacts (its step is the bare integrator step) from that start. Where the gradient's
+      time goes: into the impacts, or into the free steps of a program that can collide.
     * ``free_body_long``: a tumbling box under gravity, h = 1 ms, ``--long-steps`` steps
       (default 1e5), the gradient of the final pose with respect to the inertia and the
       initial state, through ``rollout(..., checkpoint=True, save_every=k)`` with
@@ -107,14 +112,49 @@ def bounce(steps, repeats, dtype):
     forward, c_fwd = compiled(loss, params, state)
     reverse, c_rev = compiled(jax.grad(loss, argnums=(0, 1)), params, state)
     jacfwd, c_jf = compiled(jax.jacfwd(coefficients), x)
+
+    # The cost split: flight only, in this program and in one without contacts.
+    fall = 0.5 * 9.81 * (steps * 1e-3) ** 2
+    high = step.prepare(scene.state(params, position=(0.0, 0.0, 1.1 + fall), velocity=(0.3, 0.0, 0.0),
+                                    angular_velocity=(0.0, 2.0, 0.0)))
+    bare_scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    bare_step = rb.make_step(bare_scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    bare_params = bare_scene.params(dtype=dtype)
+    bare_state = bare_step.prepare(bare_scene.state(bare_params, position=high.position, velocity=high.velocity,
+                                                    angular_velocity=(0.0, 2.0, 0.0)))
+
+    def bare_loss(p, s):
+        _, traj = rb.rollout(bare_step, p, s, steps)
+        return jnp.sum(traj.position[:, 0, 2])
+
+    bare_forward, _ = compiled(bare_loss, bare_params, bare_state)
+    bare_reverse, _ = compiled(jax.grad(bare_loss, argnums=(0, 1)), bare_params, bare_state)
+    lowest = float(jnp.min(rb.rollout(step, params, high, steps)[1].position[:, 0, 2]))
+    if lowest < 1.0:  # radius 0.1 m, the contact margin 0.02 m at h = 1 ms: far above both
+        raise RuntimeError(f"the flight-only start reaches {lowest:.3f} m: it must stay far from the ground")
+    # Flight only, the two programs' gradients must be those of the same free motion.
+    g_flight, g_bare = reverse(params, high), bare_reverse(bare_params, bare_state)
+    flight_mismatch = max(
+        float(np.max(np.abs(np.asarray(getattr(g_flight[1], f)) - np.asarray(getattr(g_bare[1], f)))))
+        for f in ("position", "velocity", "orientation", "angular_momentum"))
+
     rounds = max(repeats, BOUNCE_ROUNDS)
     times = interleaved({"forward": (forward, (params, state)), "reverse": (reverse, (params, state)),
                          "jacfwd": (jacfwd, (x,))}, rounds)
+    # The split in rounds of its own (the headline ratio's rounds stay as they were),
+    # with the bouncing start again beside the others.
+    split_times = interleaved({"forward_bounce": (forward, (params, state)),
+                               "reverse_bounce": (reverse, (params, state)),
+                               "forward_flight": (forward, (params, high)), "reverse_flight": (reverse, (params, high)),
+                               "forward_no_contacts": (bare_forward, (bare_params, bare_state)),
+                               "reverse_no_contacts": (bare_reverse, (bare_params, bare_state))}, rounds)
     t_fwd, t_rev, t_jf = (float(np.min(times[k])) for k in ("forward", "reverse", "jacfwd"))
     median = {k: float(np.median(v)) for k, v in times.items()}
     grads = reverse(params, state)
     finite = all(bool(np.all(np.isfinite(np.asarray(g)))) for g in jax.tree.leaves(grads))
+    split = {k: float(np.min(v)) for k, v in split_times.items()}
     return {
+        "cost_split_s": split, "flight_state_gradient_max_abs_difference": flight_mismatch,
         "steps": steps, "forward_s": t_fwd, "reverse_grad_s": t_rev, "forward_jacobian_3_params_s": t_jf,
         "ratio_reverse_over_forward": t_rev / t_fwd, "ratio_jacfwd3_over_forward": t_jf / t_fwd,
         "timing_rounds": rounds, "median_forward_s": median["forward"], "median_reverse_grad_s": median["reverse"],
@@ -184,6 +224,17 @@ def print_table(record):
           f"x{b['median_ratio_reverse_over_forward']:.2f}), forward Jacobian (3 params) "
           f"{b['forward_jacobian_3_params_s'] * 1e3:.1f} ms (x{b['ratio_jacfwd3_over_forward']:.2f}); compile "
           f"{b['compile_forward_s']:.1f} / {b['compile_reverse_s']:.1f} / {b['compile_jacfwd_s']:.1f} s")
+    c = b.get("cost_split_s")
+    if c:
+        print(f"  split (rounds of its own): bouncing as above: forward {c['forward_bounce'] * 1e3:.2f} ms, "
+              f"gradient {c['reverse_bounce'] * 1e3:.2f} ms (x{c['reverse_bounce'] / c['forward_bounce']:.2f})")
+        print(f"  the same programs, flight only (no step near the ground): forward "
+              f"{c['forward_flight'] * 1e3:.2f} ms, gradient {c['reverse_flight'] * 1e3:.2f} ms "
+              f"(x{c['reverse_flight'] / c['forward_flight']:.2f})")
+        print(f"  the same flight, scene without contacts: forward {c['forward_no_contacts'] * 1e3:.3f} ms, "
+              f"gradient {c['reverse_no_contacts'] * 1e3:.3f} ms "
+              f"(x{c['reverse_no_contacts'] / c['forward_no_contacts']:.2f}); state gradients agree to "
+              f"{b['flight_state_gradient_max_abs_difference']:.1e}")
     f = record["free_body_long"]
     for name in ("checkpointed", "plain"):
         if name in f:

@@ -103,6 +103,12 @@ def test_contacts_benchmark_quick(tmp_path):
 def test_gradients_benchmark_quick(tmp_path):
     record = load("gradients").main(["--quick", "--no-plain", "--out", str(tmp_path)])
     assert record["bounce"]["gradient_finite"] and record["bounce"]["ratio_reverse_over_forward"] > 0
+    # The cost split: flight only, the contact program's free steps and the bare integrator
+    # step are the same arithmetic, so their gradients with respect to the state agree.
+    split = record["bounce"]["cost_split_s"]
+    assert set(split) == {f"{d}_{case}" for d in ("forward", "reverse") for case in ("bounce", "flight", "no_contacts")}
+    assert all(t > 0 for t in split.values())
+    assert record["bounce"]["flight_state_gradient_max_abs_difference"] <= 1e-12
     long = record["free_body_long"]["checkpointed"]
     assert long["gradient_finite"] and long["xla_memory_bytes"] > 0
     assert json.loads((tmp_path / "gradients.json").read_text())["bounce"]["steps"] == 50

@@ -1,5 +1,7 @@
 """jit, vmap, grad, jacfwd, no retracing, float32 robustness and the NaN debug mode."""
 
+import contextlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -270,18 +272,78 @@ def test_chunked_recording_equals_the_step_by_step_loop(dtype):
     def by_step(p, s):
         return _scan_steps(step, p, s, steps, 1, False, 1)
 
-    final, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, steps))(params, state)
+    with _counting_free_attempts() as attempts:
+        final, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, steps))(params, state)
+    assert attempts  # the chunks were first tried as free flight (see _speculative_chunk)
     final_ref, traj_ref = jax.jit(by_step)(params, state)
     assert traj.position.shape == (steps, 1, 3)
     assert float(traj_ref.position[:, 0, 2].min()) < 0.11  # it reached the ground and bounced
     for x, y in zip(jax.tree.leaves((final, traj)), jax.tree.leaves((final_ref, traj_ref)), strict=True):
         np.testing.assert_array_equal(x, y)
 
-    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(jnp.array([0.45, 0.6], dtype))
+    # Members that disagree: the last one (2 m) never comes near the ground, so its second
+    # chunk is free flight while the others' is not.
+    heights = jnp.array([0.45, 0.6, 2.0], dtype)
+    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(heights)
     batched = jax.jit(jax.vmap(lambda s: rb.rollout(step, params, s, steps)[1].position))(starts)
-    for i in range(2):
+    for i in range(len(heights)):
         one = jax.tree.map(lambda x, i=i: x[i], starts)
         np.testing.assert_array_equal(batched[i], jax.jit(by_step)(params, one)[1].position)
+
+
+@contextlib.contextmanager
+def _counting_free_attempts():
+    """Records each trace of a free step by the chunked rollout's free-flight attempt."""
+    import jaxrb.simulate as simulate
+
+    calls, original = [], simulate.free_step
+    jax.clear_caches()  # a rollout traced earlier in this process would not be traced again
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    simulate.free_step = counted
+    try:
+        yield calls
+    finally:
+        simulate.free_step = original
+
+
+def test_free_chunks_have_the_derivatives_of_the_step_by_step_loop():
+    """A bouncing ball's chunks, tried as free flight and kept or run again as contact
+    steps: reverse mode with respect to the params and the state, and forward mode under
+    vmap (the fitters' pattern), as through the step-by-step loop, across the impact."""
+    from jaxrb.simulate import _chunk_length, _scan_steps
+
+    step, params, state = _bouncing_ball()
+    steps = 30
+    assert _chunk_length(state, steps) > 1
+
+    def loss(run):
+        return lambda p, s: jnp.sum(run(p, s)[1].position[:, 0, 2] ** 2) + jnp.sum(run(p, s)[0].velocity ** 2)
+
+    chunked = loss(lambda p, s: rb.rollout(step, p, s, steps))
+    by_step = loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
+    with _counting_free_attempts() as attempts:
+        g = jax.jit(jax.grad(chunked, argnums=(0, 1)))(params, state)
+    assert attempts
+    g_ref = jax.jit(jax.grad(by_step, argnums=(0, 1)))(params, state)
+    assert_trees_close(g, g_ref, rtol=1e-13, atol=1e-13)
+    assert abs(float(g_ref[0].restitution[0])) > 1e-2  # the impact is inside the rollout
+
+    def heights(e, z):
+        s = state.replace(position=state.position.at[0, 2].set(z))
+        return rb.rollout(step, params.replace(restitution=e), s, steps)[1].position[:, 0, 2]
+
+    zs = jnp.array([0.45, 2.0])  # one bounces, one stays in flight
+    jac = jax.jit(jax.vmap(jax.jacfwd(heights), in_axes=(None, 0)))(params.restitution, zs)
+    for i, z in enumerate(zs):
+        s = state.replace(position=state.position.at[0, 2].set(z))
+        ref = jax.jacfwd(lambda e, s=s: _scan_steps(step, params.replace(restitution=e), s, steps, 1, False, 1)[1]
+                         .position[:, 0, 2])(params.restitution)
+        np.testing.assert_allclose(jac[i], ref, rtol=1e-12, atol=1e-15)
+    assert float(jnp.max(jnp.abs(jac[0]))) > 1e-3 and float(jnp.max(jnp.abs(jac[1]))) == 0.0
 
 
 def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():

@@ -55,7 +55,8 @@ from ._lcp import solve_exact
 from ._settings import ContactSettings
 from ._solver import SAVE_NAMED, SEPARATIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
 
-__all__ = ["contact_step", "layout_of", "free_scene_of", "initial_impulses", "resolve_impacts"]
+__all__ = ["contact_step", "far_from_contact", "free_step", "layout_of", "free_scene_of", "initial_impulses",
+           "resolve_impacts"]
 
 #: m; slots this close count as touching for the impact law at the time of impact.
 TOUCHING = 1e-4
@@ -325,6 +326,48 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, 
     return jnp.clip(root - value / slope, 0.0, 1.0)
 
 
+def _branch_test(ctx: _Ctx, params: Params, state: State):
+    """Which branch a step from ``state`` takes: ``(far, start_sep, end_sep, candidate)``.
+
+    ``far``: no slot within the margin at the start and no pair closing during the step's
+    free flight (then the step is :func:`_free_step`). The separations (cheap: no box-box
+    manifold) at both ends of the free flight bracket the time of impact of the
+    ``candidate`` pairs (``end_sep`` and ``candidate`` are ``None`` without the search).
+    Only their values are used (to choose a branch, and as the bracket), so they are
+    computed without tangents; and named (:data:`SEPARATIONS`, one array), so that reverse
+    mode through a checkpointed step reads them back instead of computing them again.
+    """
+    settings, dt = ctx.settings, ctx.dt
+    frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
+    start_sep = _pair_gaps(ctx, frozen_state)
+    end_sep = candidate = None
+    if settings.time_of_impact:
+        flight = _free_flight(ctx, frozen_params, frozen_state)
+        end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
+        start_sep, end_sep = checkpoint_name(jnp.stack([start_sep, _pair_gaps(ctx, end_pose)]), SEPARATIONS)
+        candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
+    else:
+        start_sep = checkpoint_name(start_sep, SEPARATIONS)
+    far = jnp.all(start_sep >= ctx.margin)
+    if candidate is not None:
+        far = far & ~jnp.any(candidate)
+    return far, start_sep, end_sep, candidate
+
+
+def far_from_contact(scene: Scene, settings: ContactSettings, dt: float, params: Params, state: State) -> jax.Array:
+    """Whether :func:`contact_step` from ``state`` takes its free branch (bool scalar, no
+    tangent): exactly the test it makes."""
+    ctx = _Ctx(scene, layout_of(scene), None, settings, dt)
+    return _branch_test(ctx, params, state)[0]
+
+
+def free_step(scene: Scene, integrator, settings: ContactSettings, dt: float, params: Params, state: State,
+              derived) -> State:
+    """The free branch of :func:`contact_step` (kick, drift, kick; the same arithmetic), for
+    a state where :func:`far_from_contact` holds."""
+    return _free_step(_Ctx(scene, layout_of(scene), integrator, settings, dt), params, state, derived)
+
+
 def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
                  params: Params, state: State, derived) -> State:
     """One step of a scene with contacts (see the module docstring).
@@ -347,25 +390,7 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     ctx = _Ctx(scene, layout_of(scene), integrator, settings, dt)
     if state.contact_impulse is None:
         state = dataclasses.replace(state, contact_impulse=initial_impulses(scene, state.position.dtype))
-
-    # Which pairs, apart at the start, overlap at the end of the step's free flight?
-    # Their separations (cheap: no box-box manifold) at both ends bracket the time of
-    # impact. Only their values are used (to choose a branch, and as the bracket), so
-    # they are computed without tangents; and named (SEPARATIONS, one array), so that reverse
-    # mode through the checkpointed step reads them back instead of computing them again.
-    frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
-    start_sep = _pair_gaps(ctx, frozen_state)
-    end_sep = candidate = None
-    if settings.time_of_impact:
-        flight = _free_flight(ctx, frozen_params, frozen_state)
-        end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
-        start_sep, end_sep = checkpoint_name(jnp.stack([start_sep, _pair_gaps(ctx, end_pose)]), SEPARATIONS)
-        candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
-    else:
-        start_sep = checkpoint_name(start_sep, SEPARATIONS)
-    far = jnp.all(start_sep >= ctx.margin)
-    if candidate is not None:
-        far = far & ~jnp.any(candidate)
+    far, start_sep, end_sep, candidate = _branch_test(ctx, params, state)
     free = jax.checkpoint(lambda p, s: _free_step(ctx, p, s, derived))
     contact = jax.checkpoint(lambda p, s: _contact_step(ctx, p, s, derived, start_sep, end_sep, candidate),
                              policy=SAVE_NAMED)
