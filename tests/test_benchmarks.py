@@ -106,7 +106,8 @@ def test_gradients_benchmark_quick(tmp_path):
     # The cost split: flight only, the contact program's free steps and the bare integrator
     # step are the same arithmetic, so their gradients with respect to the state agree.
     split = record["bounce"]["cost_split_s"]
-    assert set(split) == {f"{d}_{case}" for d in ("forward", "reverse") for case in ("bounce", "flight", "no_contacts")}
+    cases = ("bounce", "flight", "no_contacts", "no_contacts_attitude_kept")
+    assert set(split) == {f"{d}_{case}" for d in ("forward", "reverse") for case in cases}
     assert all(t > 0 for t in split.values())
     assert record["bounce"]["flight_state_gradient_max_abs_difference"] <= 1e-12
     long = record["free_body_long"]["checkpointed"]
