@@ -325,7 +325,10 @@ def test_free_chunks_have_the_derivatives_of_the_step_by_step_loop():
     assert _chunk_length(state, steps) > 1
 
     def loss(run):
-        return lambda p, s: jnp.sum(run(p, s)[1].position[:, 0, 2] ** 2) + jnp.sum(run(p, s)[0].velocity ** 2)
+        def value(p, s):
+            final, trajectory = run(p, s)
+            return jnp.sum(trajectory.position[:, 0, 2] ** 2) + jnp.sum(final.velocity ** 2)
+        return value
 
     chunked = loss(lambda p, s: rb.rollout(step, p, s, steps))
     by_step = loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
@@ -364,7 +367,10 @@ def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     assert _chunk_length(state, steps) > 1
 
     def loss(run):
-        return lambda p, s: pose_loss(run(p, s)[0]) + jnp.sum(run(p, s)[1].orientation[:, 0, 1] ** 2)
+        def value(p, s):
+            final, trajectory = run(p, s)
+            return pose_loss(final) + jnp.sum(trajectory.orientation[:, 0, 1] ** 2)
+        return value
 
     chunked = loss(lambda p, s: rb.rollout(step, p, s, steps))
     by_step = loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
