@@ -244,13 +244,21 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
     start = (state, jnp.zeros((), jnp.int32))
     if chunk > 1:
         if _speculates(step):
-            chunk_of_steps = _speculative_chunk(step, params, derived, segment, chunk, t0)
+            chunk_of_steps = _speculative(step, params, derived,
+                                          lambda c: jax.lax.scan(segment, c, None, length=chunk), chunk, t0,
+                                          record=True)
         else:
             def chunk_of_steps(carry, _):
                 return jax.lax.scan(segment, carry, None, length=chunk)
 
         (final, _), trajectory = jax.lax.scan(chunk_of_steps, start, None, length=num_steps // chunk)
         return final, jax.tree.map(lambda x: x.reshape((num_steps, *x.shape[2:])), trajectory)
+    if save_every > 1 and _speculates(step):
+        # Each segment of save_every steps, which records its last state only, is tried as
+        # free flight first in the same way (then inside the checkpoint, if any).
+        contact_segment = segment
+        segment = _speculative(step, params, derived, lambda c: contact_segment(c, None)[0], save_every, t0,
+                               record=False)
     if checkpoint:
         # Rematerialise each segment in the backward pass: memory O(num_steps / save_every
         # + save_every) states instead of O(num_steps).
@@ -266,29 +274,34 @@ def _timed(state: State, t0, k, dt: float) -> State:
 
 
 def _speculates(step) -> bool:
-    """Whether a chunked rollout of ``step`` tries each chunk as free flight first."""
+    """Whether a rollout of ``step`` tries each chunk (``save_every == 1``) or segment
+    (``save_every > 1``) as free flight first (see :func:`_speculative`)."""
     return isinstance(step, Step) and bool(step.scene.contact_pairs) and not step.debug
 
 
-def _speculative_chunk(step: Step, params: Params, derived, segment, chunk: int, t0):
-    """The body of the chunk loop of a scene with contacts: each chunk as free flight
-    first, verified, and run again as contact steps where it was not free.
+def _speculative(step: Step, params: Params, derived, contact_steps, length: int, t0, record: bool):
+    """The body of a loop over groups of ``length`` steps of a scene with contacts: each
+    group tried as free flight first, verified, and run again as contact steps
+    (``contact_steps(carry) -> (carry, states)``, or ``-> carry`` when ``record`` is
+    False) where it was not free. With ``record`` the group is a chunk of a rollout that
+    records every state (the states of its steps are stacked); without, a segment of
+    ``save_every`` steps, which records its last state only.
 
     A contact step far from everything (no slot within the margin at its start, no pair
     closing during its free flight) takes a free-step branch: kick, drift, kick, with
     nothing of the contact stage. Stepped one by one, every step still goes through that
     branch's ``cond``, whose boundary XLA does not fuse across, and whose derivative
-    recomputes and transposes the step inside a ``cond`` of its own. Here a chunk whose
-    first state is far from everything runs ``chunk`` plain free steps instead (one fused
+    recomputes and transposes the step inside a ``cond`` of its own. Here a group whose
+    first state is far from everything runs ``length`` plain free steps instead (one fused
     loop, no ``cond``), testing at each step's start the same condition the contact step
     tests. If every step passed, those are exactly the states the contact steps would
     have produced: the same test chose the same branch, whose arithmetic is the same.
-    Otherwise (or when the chunk starts near a contact) the chunk runs as contact steps
+    Otherwise (or when the group starts near a contact) the group runs as contact steps
     from its first state, and the free attempt is discarded. Measured side by side
-    (benchmarks/README.md, "Free chunks"): the 1000-step bouncing ball's gradient 26%
-    faster (5.7 against 7.7 ms), and 48% over pure flight; where every chunk is in
-    contact (a sliding box) the forward pays the test, 6.6% slower, the gradient 3%; a
-    1024-ball ensemble spread over heights, 5% slower.
+    (benchmarks/README.md, "Free chunks" and "Free segments"): the 1000-step bouncing
+    ball's gradient 26% faster recording every state (5.7 against 7.7 ms), 30% faster
+    recording every 10th (5.2 against 7.4 ms); where every group is in contact (a sliding
+    box) the forward pays the test, about 6% slower, the gradient 1.5-3%.
     """
     scene, settings, dt = step.scene, step.contact, step.dt
 
@@ -303,21 +316,27 @@ def _speculative_chunk(step: Step, params: Params, derived, segment, chunk: int,
         passed = far(s)
         s = free_step(scene, step.integrator, settings, dt, params, s, derived)
         s = _timed(s, t0, k + 1, dt)
-        return (s, k + 1), (s, passed)
+        return (s, k + 1), ((s, passed) if record else passed)
 
     def attempt(carry):
-        end, (states, passed) = jax.lax.scan(free_advance, carry, None, length=chunk)
-        return jnp.all(passed), (end, states)
+        end, out = jax.lax.scan(free_advance, carry, None, length=length)
+        if record:
+            states, passed = out
+            return jnp.all(passed), (end, states)
+        return jnp.all(out), end
 
     def skip(carry):
         _, out = jax.eval_shape(attempt, carry)
         return jnp.zeros((), bool), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), out)
 
-    def chunk_of_steps(carry, _):
+    def speculative_steps(carry, _):
         free, flight = branch(far(carry[0]), attempt, skip, carry)
-        return branch(free, lambda c: flight, lambda c: jax.lax.scan(segment, c, None, length=chunk), carry)
+        if record:
+            return branch(free, lambda c: flight, contact_steps, carry)
+        carry = branch(free, lambda c: flight, contact_steps, carry)
+        return carry, carry[0]
 
-    return chunk_of_steps
+    return speculative_steps
 
 
 #: Bytes. XLA:CPU runs the kernels of a loop body one after another, in the calling
@@ -379,9 +398,10 @@ def rollout(
     With ``save_every=1`` and a scene of a few bodies, the states are stacked in chunks
     of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
     ball's forward by 25%), with the values of the step-by-step loop. With contacts, a
-    chunk that starts far from every contact is first run as plain free steps, and kept
-    if none of them came near one (else run again as contact steps): the same states, and
-    a gradient a quarter faster for the ball, twice as fast in flight.
+    chunk (or, with ``save_every > 1``, a segment of ``save_every`` steps) that starts far
+    from every contact is first run as plain free steps, and kept if none of them came
+    near one (else run again as contact steps): the same states, and a gradient a quarter
+    faster for the ball, twice as fast in flight.
 
     Returns:
         ``final``: the state after ``num_steps`` steps. ``trajectory``: the states after

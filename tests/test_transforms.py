@@ -274,7 +274,7 @@ def test_chunked_recording_equals_the_step_by_step_loop(dtype):
 
     with _counting_free_attempts() as attempts:
         final, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, steps))(params, state)
-    assert attempts  # the chunks were first tried as free flight (see _speculative_chunk)
+    assert attempts  # the chunks were first tried as free flight (see simulate._speculative)
     final_ref, traj_ref = jax.jit(by_step)(params, state)
     assert traj.position.shape == (steps, 1, 3)
     assert float(traj_ref.position[:, 0, 2].min()) < 0.11  # it reached the ground and bounced
@@ -352,6 +352,52 @@ def test_free_chunks_have_the_derivatives_of_the_step_by_step_loop():
     ref = jax.jit(jax.vmap(jax.jacfwd(heights_by_step), in_axes=(None, 0)))(params.restitution, zs)
     np.testing.assert_allclose(jac, ref, rtol=1e-12, atol=1e-15)
     assert float(jnp.max(jnp.abs(jac[0]))) > 1e-3 and float(jnp.max(jnp.abs(jac[1]))) == 0.0
+
+
+def test_free_segments_equal_the_step_by_step_loop_with_its_derivatives():
+    """rollout(save_every=k) of a scene with contacts tries each segment of k steps as free
+    flight first: the recorded states bit for bit and the gradients (checkpointed) as
+    through the step-by-step loop, across the impact; and the states of vmapped members
+    that disagree (not checkpointed)."""
+    from jaxrb.simulate import _scan_steps
+
+    step, params, state = _bouncing_ball()
+    step = rb.make_step(step.scene, step.integrator, step.dt, contact=rb.ContactSettings(
+        time_of_impact=False, iterations=4, impact_iterations=2, position_iterations=2))
+    steps, every = 30, 5
+
+    def loss(run):
+        def value(p, s):
+            final, trajectory = run(p, s)
+            return jnp.sum(trajectory.position[:, 0, 2] ** 2) + jnp.sum(final.velocity ** 2), trajectory
+        return jax.jit(jax.value_and_grad(value, argnums=(0, 1), has_aux=True))
+
+    def by_step(p, s):
+        final, trajectory = _scan_steps(step, p, s, steps, 1, False, 1)
+        return final, jax.tree.map(lambda x: x[every - 1::every], trajectory)
+
+    (value_ref, traj_ref), g_ref = loss(by_step)(params, state)
+    z = traj_ref.position[:, 0, 2]
+    assert float(z[-1]) > float(z[-2])  # it bounced in the last segment, the others are free flight
+    assert abs(float(g_ref[0].restitution[0])) > 1e-2  # the impact is inside the rollout
+    # Checkpointed here (the derivative then recomputes each segment's attempt and
+    # fallback); without, below, under vmap (one compiled program fewer for CI).
+    with _counting_free_attempts() as attempts:
+        (value, traj), g = loss(lambda p, s: rb.rollout(step, p, s, steps, save_every=every, checkpoint=True))(
+            params, state)
+    assert attempts  # the segments were first tried as free flight
+    for x, y in zip(jax.tree.leaves(traj), jax.tree.leaves(traj_ref), strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert float(value) == float(value_ref)
+    assert_trees_close(g, g_ref, rtol=1e-13, atol=1e-13)
+
+    # Members that disagree: the last one (2 m) never comes near the ground.
+    heights = jnp.array([0.45, 2.0])
+    starts = jax.vmap(lambda z: state.replace(position=state.position.at[0, 2].set(z)))(heights)
+    batched = jax.jit(jax.vmap(lambda s: rb.rollout(step, params, s, steps, save_every=every)[1].position))(starts)
+    for i in range(len(heights)):
+        one = jax.tree.map(lambda x, i=i: x[i], starts)
+        np.testing.assert_array_equal(batched[i], jax.jit(by_step)(params, one)[1].position)
 
 
 def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
