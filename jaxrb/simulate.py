@@ -326,15 +326,17 @@ def _speculative(step: Step, params: Params, derived, contact_steps, length: int
         return jnp.all(out), end
 
     def skip(carry):
-        _, out = jax.eval_shape(attempt, carry)
-        return jnp.zeros((), bool), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), out)
+        # attempt's output has the carry's types (a scan's carry keeps them), and the
+        # recorded states those of the state with a leading axis of ``length``.
+        end = jax.tree.map(jnp.zeros_like, carry)
+        if record:
+            return jnp.zeros((), bool), (end, jax.tree.map(lambda x: jnp.zeros((length, *x.shape), x.dtype), carry[0]))
+        return jnp.zeros((), bool), end
 
     def speculative_steps(carry, _):
         free, flight = branch(far(carry[0]), attempt, skip, carry)
-        if record:
-            return branch(free, lambda c: flight, contact_steps, carry)
-        carry = branch(free, lambda c: flight, contact_steps, carry)
-        return carry, carry[0]
+        out = branch(free, lambda c: flight, contact_steps, carry)
+        return out if record else (out, out[0])
 
     return speculative_steps
 
