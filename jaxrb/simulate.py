@@ -287,7 +287,7 @@ def _speculative(step: Step, params: Params, derived, contact_steps, length: int
     records every state (the states of its steps are stacked); without, a segment of
     ``save_every`` steps, which records its last state only.
 
-    A contact step far from everything (no slot within the margin at its start, no pair
+    A contact step far from everything (no pair touching at its start, no pair
     closing during its free flight) takes a free-step branch: kick, drift, kick, with
     nothing of the contact stage. Stepped one by one, every step still goes through that
     branch's ``cond``, whose boundary XLA does not fuse across, and whose derivative

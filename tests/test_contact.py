@@ -211,6 +211,47 @@ def test_bounce_in_float32():
     assert float(traj.position[-1, 0, 2]) > 0.1 - 1e-3  # at rest on the ground, not through it
 
 
+def test_a_step_near_the_ground_that_stays_apart_is_free_flight():
+    """With the time-of-impact search, a step is a contact step only where a pair touches at
+    its start or closes during it, not wherever a pair is within the margin (0.02 m here)."""
+    from jaxrb.contact._step import _Ctx, _branch_test, _contact_step, far_from_contact
+
+    scene, dt = ball_scene(), 1e-3
+    params = scene.params(restitution=0.8, friction=0.5)
+    step = rb.make_step(scene, SPLIT, dt)
+    settings = step.contact
+    assert settings.margin_for(dt) == pytest.approx(0.02)
+
+    def ball(clearance, vz):
+        return step.prepare(scene.state(params, position=(0.0, 0.0, 0.1 + clearance), velocity=(0.3, 0.0, vz),
+                                        angular_velocity=(0.0, 2.0, 0.0)))
+
+    def far(state, contact=settings):
+        return bool(far_from_contact(scene, contact, dt, params, state))
+
+    near = ball(0.01, -1.0)  # 1 cm up, 1 mm closer after the step
+    assert far(near)
+    assert not far(near, rb.ContactSettings(time_of_impact=False))  # there the margin rules
+    assert not far(ball(5e-5, 0.0))  # touching
+    assert not far(ball(0.01, -15.0))  # closes during the step: the impact is located in it
+    # The contact step's own branch from there changes nothing the free flight does not:
+    # its speculative constraint (u_n >= -gap/h) holds without an impulse.
+    ctx = _Ctx(scene, layout_of(scene), SPLIT, settings, dt)
+    derived = SPLIT.precompute(params)
+    _, start_sep, end_sep, candidate = _branch_test(ctx, params, near)
+    forced = _contact_step(ctx, params, near, derived, start_sep, end_sep, candidate)
+    free = step(params, near)
+    for field in ("position", "velocity", "orientation", "angular_momentum"):
+        np.testing.assert_allclose(getattr(forced, field), getattr(free, field), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(forced.contact_impulse, 0.0)
+    # The 1000-step bounce of benchmarks/gradients.py: one contact step, the impact's (the
+    # margin made it eleven).
+    _, traj = rb.rollout(step, params, ball(1.0, 0.0), 500, include_initial=True)
+    flags = jax.vmap(lambda s: far_from_contact(scene, settings, dt, params, s))(
+        jax.tree.map(lambda x: x[:-1], traj))
+    assert int(np.sum(~np.asarray(flags))) == 1
+
+
 @pytest.mark.parametrize("theta_deg", [20.0, 45.0, 70.0])
 def test_rod_landing_on_one_end(theta_deg):
     """Thin rod at angle theta to the ground, falling at v: J = (1+e) m v / (1 + 3 cos^2 theta),

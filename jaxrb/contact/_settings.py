@@ -52,10 +52,13 @@ class ContactSettings:
             ``State.contact_impulse``).
         restitution_threshold: m/s. Impacts slower than this are plastic (``e = 0``), so a
             resting body does not micro-bounce on the velocity gravity gives it in one step.
-        margin: m. Slots closer than this are solved ahead of contact ("speculative"
-            contacts, which may approach by ``gap`` in the step but not pass), and only
-            they are searched for a time of impact. It must exceed the largest approach
-            speed times ``dt``. Default ``None``: ``0.01 m + (10 m/s) dt``.
+        margin: m. In a contact step, slots closer than this are solved ahead of contact
+            ("speculative" contacts, which may approach by ``gap`` in the step but not
+            pass). With ``time_of_impact``, a step is a contact step only where a pair
+            touches at its start (within 0.1 mm, or twice ``penetration_slop``) or closes
+            during its free flight; without it, wherever a pair is within the margin, which
+            must then exceed the largest approach speed times ``dt``. Default ``None``:
+            ``0.01 m + (10 m/s) dt``.
         time_of_impact: locate the first new impact inside each step: advance to it,
             apply the impulse, finish the step. Bounce heights then do not depend on ``dt``.
         toi_iterations: root-finding iterations for the time of impact.
