@@ -211,6 +211,36 @@ def test_bounce_in_float32():
     assert float(traj.position[-1, 0, 2]) > 0.1 - 1e-3  # at rest on the ground, not through it
 
 
+def test_static_rows_and_literal_arrays_match_numpy():
+    from jaxrb._indexing import literal_array, take_rows
+
+    x = jnp.arange(15.0).reshape(5, 3)
+    for idx in ([0, 1, 2], [2, 2, 2], [0, 0, 1, 2, 2, 3], [3, 1, 0, 2], [4], [1, 2, 2, 4, 0, 0], []):
+        np.testing.assert_array_equal(take_rows(x, idx), np.asarray(x)[np.asarray(idx, dtype=int)])
+    with pytest.raises(IndexError, match="out of range"):
+        take_rows(x, [0, 5])
+    table = np.array([[1.5, -2.0, 0.25], [0.0, 3.0, -1.0]])
+    np.testing.assert_array_equal(literal_array(table, jnp.float64), table)
+    np.testing.assert_array_equal(literal_array([[3, 1], [2, 5]]), [[3, 1], [2, 5]])
+    assert literal_array(np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_the_contact_step_captures_no_array_constant():
+    """Every shape pair: the step's jaxpr closes over no array. Inside the differentiated
+    ``cond`` of a rollout's chunk, each captured constant the backward pass reads is copied
+    out and stacked at every chunk (JAX's cond partial evaluation does not forward its
+    operands): the bouncing ball's gradient ran 8% fewer kernels without them. Write static
+    tables with jaxrb._indexing (literal_array, take_rows), not jnp.asarray(numpy)."""
+    bodies = [rb.Body("b0", shape=BOX, mass=1.0), rb.Body("b1", shape=BOX, mass=1.0),
+              rb.Body("s", shape=rb.Sphere(0.1), mass=1.0), rb.Body("c", shape=rb.Capsule(0.05, 0.2), mass=1.0)]
+    scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, SPLIT, 1e-3)
+    params = scene.params(restitution=0.8, friction=0.5)
+    state = step.prepare(scene.state(params, position=[[0.0, 0.0, 0.1 + 0.3 * i] for i in range(4)]))
+    jaxpr = jax.make_jaxpr(lambda p, s: step.advance(p, s, SPLIT.precompute(p)))(params, state)
+    assert [np.shape(c) for c in jaxpr.consts] == []
+
+
 def test_a_step_near_the_ground_that_stays_apart_is_free_flight():
     """With the time-of-impact search, a step is a contact step only where a pair touches at
     its start or closes during it, not wherever a pair is within the margin (0.02 m here)."""

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
+from .._indexing import literal_array
 from ..shapes import Box
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
@@ -245,7 +246,7 @@ def box_box_separation(
     """
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     pa, qa, pb, qb = geo.as_float(dtype, position_a, orientation_a, position_b, orientation_b)
-    ea, eb = jnp.asarray(box_a.half_extents, dtype), jnp.asarray(box_b.half_extents, dtype)
+    ea, eb = literal_array(box_a.half_extents, dtype), literal_array(box_b.half_extents, dtype)
     face_sep, _, edge_sep, _, edge_ok = _axis_separations(pa, geo.body_axes(qa), ea, pb, geo.body_axes(qb), eb)
     return jnp.maximum(jnp.max(face_sep), jnp.max(jnp.where(edge_ok, edge_sep, -jnp.inf)))
 
@@ -271,8 +272,8 @@ def box_box(
     geo.check_margin(margin)
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     pa, qa, pb, qb = geo.as_float(dtype, position_a, orientation_a, position_b, orientation_b)
-    ea = jnp.asarray(box_a.half_extents, dtype)
-    eb = jnp.asarray(box_b.half_extents, dtype)
+    ea = literal_array(box_a.half_extents, dtype)
+    eb = literal_array(box_b.half_extents, dtype)
     axes_a = geo.body_axes(qa)
     axes_b = geo.body_axes(qb)
     delta = pa - pb

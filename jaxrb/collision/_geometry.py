@@ -12,6 +12,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
+from .._indexing import literal_array
 
 
 def pose(name: str, position: ArrayLike, orientation: ArrayLike) -> tuple[Array, Array]:
@@ -65,7 +66,7 @@ CUBE_CORNERS = np.array([[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx
 
 def box_corners(center: Array, axes: Array, half_extents: Array) -> Float[Array, "8 3"]:
     """World corners ``c + sum_i s_i e_i a_i`` of a box; ``axes`` rows are its world axes."""
-    local = jnp.asarray(CUBE_CORNERS, center.dtype) * half_extents[None, :]
+    local = literal_array(CUBE_CORNERS, center.dtype) * half_extents[None, :]
     return center[None, :] + spatial.matvec(spatial.transpose(axes)[None], local)
 
 

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
+from .._indexing import literal_array
 from ..shapes import Box, Capsule, Plane, Sphere
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
@@ -19,7 +20,7 @@ __all__ = ["sphere_plane", "box_plane", "capsule_plane"]
 
 
 def _plane_normal(plane: Plane, dtype) -> Array:
-    return jnp.asarray(plane.normal, dtype=dtype)
+    return literal_array(plane.normal, dtype)
 
 
 def sphere_plane(
@@ -71,7 +72,7 @@ def box_plane(
     dtype = geo.float_dtype(position, orientation)
     position, orientation = geo.as_float(dtype, position, orientation)
     n = _plane_normal(plane, dtype)
-    corners = geo.box_corners(position, geo.body_axes(orientation), jnp.asarray(box.half_extents, dtype))
+    corners = geo.box_corners(position, geo.body_axes(orientation), literal_array(box.half_extents, dtype))
     height = spatial.dot(corners, n[None, :]) - plane.offset  # (8,)
     index = jnp.arange(8)
     same = height[None, :] == height[:, None]
@@ -107,8 +108,8 @@ def capsule_plane(
     dtype = geo.float_dtype(position, orientation)
     position, orientation = geo.as_float(dtype, position, orientation)
     n = _plane_normal(plane, dtype)
-    axis = spatial.quat_rotate(orientation, jnp.asarray([0.0, 0.0, 1.0], dtype))
-    ends = position[None, :] + jnp.asarray([[1.0], [-1.0]], dtype) * (capsule.half_length * axis[None, :])
+    axis = spatial.quat_rotate(orientation, literal_array([0.0, 0.0, 1.0], dtype))
+    ends = position[None, :] + literal_array([[1.0], [-1.0]], dtype) * (capsule.half_length * axis[None, :])
     gap = spatial.dot(ends, n[None, :]) - plane.offset - capsule.radius
     lowest = ends - capsule.radius * n[None, :]
     return contact_from_surface_point(lowest, jnp.broadcast_to(n, (2, 3)), gap, margin)

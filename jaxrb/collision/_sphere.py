@@ -12,6 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
+from .._indexing import literal_array
 from ..shapes import Box, Capsule, Sphere
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
@@ -60,7 +61,7 @@ def sphere_sphere(
     geo.check_margin(margin)
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     position_a, position_b = geo.as_float(dtype, position_a, position_b)
-    up = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    up = literal_array([0.0, 0.0, 1.0], dtype)
     surface_a, normal, gap = rounded_points_contact(position_a, sphere_a.radius, position_b, sphere_b.radius, up)
     return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
 
@@ -95,7 +96,7 @@ def sphere_box(
     geo.check_margin(margin)
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
-    half = jnp.asarray(box.half_extents, dtype)
+    half = literal_array(box.half_extents, dtype)
     axes = geo.body_axes(orientation_b)  # rows: box axes, world frame
     centre = spatial.dot(axes, (position_a - position_b)[None, :])  # box frame
     # Outside: the clamped point.

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import spatial
+from .._indexing import literal_array, take_rows
 from ..collision import Contact, collide, concatenate_contacts, max_contacts
 from ..collision._box import box_box_separation
 from ..scene import GROUND, Scene
@@ -165,17 +166,17 @@ def _shape_poses(scene: Scene, state: State):
         # which XLA cannot fold away (0 * x is not 0 for every float x), and which kept
         # the whole attitude path of the step's separations alive for a ball.
         return state.position, state.orientation
-    offsets = jnp.asarray(offsets, dtype=state.position.dtype)
+    offsets = literal_array(offsets, state.position.dtype)
     return state.position + spatial.quat_rotate(state.orientation, offsets), state.orientation
 
 
 def _group_poses(layout: Layout, g: _Group, positions, orientations):
-    """Poses of a group's A and B bodies, ``(G, 3)`` and ``(G, 4)``; ``None`` for the ground."""
-    ia = np.asarray(g.body_a)
+    """Poses of a group's A and B bodies, ``(G, 3)`` and ``(G, 4)``; ``None`` for the ground.
+    (Static slices, not gathers: see :mod:`jaxrb._indexing`.)"""
+    pa, qa = take_rows(positions, g.body_a), take_rows(orientations, g.body_a)
     if g.body_b[0] == layout.num_bodies:  # the ground has no pose
-        return positions[ia], orientations[ia], None, None
-    ib = np.asarray(g.body_b)
-    return positions[ia], orientations[ia], positions[ib], orientations[ib]
+        return pa, qa, None, None
+    return pa, qa, take_rows(positions, g.body_b), take_rows(orientations, g.body_b)
 
 
 def _group_contacts(g: _Group, pa, qa, pb, qb, margin: float) -> Contact:
@@ -196,7 +197,8 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
     clipped box-box manifold is the most expensive narrow phase to run and to compile.
     """
     positions, orientations = _shape_poses(scene, state)
-    gaps = jnp.full((scene.num_contact_pairs,), margin, dtype=state.position.dtype)
+    dtype = state.position.dtype
+    separations, pair_order = [], []
     for g in layout.groups:
         pa, qa, pb, qb = _group_poses(layout, g, positions, orientations)
         if isinstance(g.shape_a, Box) and isinstance(g.shape_b, Box):
@@ -205,8 +207,12 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
         else:
             contact = _group_contacts(g, pa, qa, pb, qb, margin)
             sep = jnp.min(jnp.where(contact.active, contact.gap, margin), axis=-1)
-        gaps = gaps.at[np.asarray(g.pair_index)].set(sep.astype(gaps.dtype))
-    return gaps
+        separations.append(sep.astype(dtype))
+        pair_order.extend(g.pair_index)
+    # The groups' pairs in pair order: a permutation by static slices, not a scatter by an
+    # index constant (see jaxrb._indexing). Every pair is in exactly one group.
+    assert sorted(pair_order) == list(range(scene.num_contact_pairs))
+    return take_rows(jnp.concatenate(separations), np.argsort(pair_order))
 
 
 def detect(scene: Scene, layout: Layout, state: State, margin: float) -> Contact:

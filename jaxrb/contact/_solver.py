@@ -39,6 +39,7 @@ from jaxtyping import Array, Float
 
 from .. import spatial
 from .._branch import branch
+from .._indexing import literal_array
 
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a solve's impulses and velocities.
 SOLUTION = "jaxrb_contact_solution"
@@ -122,8 +123,11 @@ def frames(bodies: Bodies, body_a, body_b, point, normal, position) -> Frames:
     """
     pad = lambda x, value: jnp.concatenate([x, jnp.full((1, *x.shape[1:]), value, x.dtype)])  # noqa: E731
     n_rows = bodies.inv_mass.shape[0]
-    body_a = jnp.concatenate([jnp.asarray(body_a, jnp.int32), jnp.array([n_rows - 1], jnp.int32)])
-    body_b = jnp.concatenate([jnp.asarray(body_b, jnp.int32), jnp.array([n_rows - 1], jnp.int32)])
+    # Static indices (a layout's) become literals, not a captured constant (jaxrb._indexing).
+    padded = lambda b: (literal_array([*np.asarray(b).reshape(-1), n_rows - 1])  # noqa: E731
+                        if isinstance(b, (tuple, list, np.ndarray))
+                        else jnp.concatenate([jnp.asarray(b, jnp.int32), jnp.array([n_rows - 1], jnp.int32)]))
+    body_a, body_b = padded(body_a), padded(body_b)
     point = pad(point, 0.0)
     normal = pad(normal, 0.0).at[-1, 2].set(1.0)
     r_a = point - position[body_a]

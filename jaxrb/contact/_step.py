@@ -43,11 +43,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
 from .._branch import branch
+from .._indexing import literal_array, take_rows
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import Scene
@@ -116,12 +116,12 @@ def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
 
 
 def _slot_coefficients(layout: Layout, params: Params):
-    pair = np.asarray(layout.pair, dtype=np.int32)
-    return params.restitution[pair], params.friction[pair]
+    """Each slot's ``(e, mu)`` ``(C,)``, from its pair's (static slices: see jaxrb._indexing)."""
+    return take_rows(params.restitution, layout.pair), take_rows(params.friction, layout.pair)
 
 
 def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu, active, lam0):
-    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
+    colours = literal_array(layout.colours)
     if settings.solver == "exact":
         return solve_exact(bodies, f, colours, target, mu, active, lam0,
                            settings.iterations, settings.newton_iterations)
@@ -177,7 +177,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     f = frames(start, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(layout, params)
     gap = contact.gap
-    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
+    colours = literal_array(layout.colours)
     # Impacts first, at the start of the step, on the velocities there: slots that touch or
     # would close during the step (at the kicked velocity) collide by Newton's law if they
     # approach faster than the threshold. (Not in the part of a split step before its
@@ -210,7 +210,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     push = contact.active & (depth > 0)
     still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
                                 angular_velocity=jnp.zeros_like(bodies.angular_velocity))
-    pseudo, _ = solve(still, f, jnp.asarray(np.asarray(layout.colours, dtype=np.int32)),
+    pseudo, _ = solve(still, f, literal_array(layout.colours),
                       settings.position_correction * depth / h, jnp.zeros_like(mu), push,
                       jnp.zeros_like(lam0), settings.position_iterations, friction=False,
                       tolerance=settings.tolerance_for(depth.dtype))
@@ -280,7 +280,7 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(layout, params)
     touching = contact.active & (contact.gap <= TOUCHING)
-    colours = jnp.asarray(np.asarray(layout.colours, dtype=np.int32))
+    colours = literal_array(layout.colours)
     solved, _ = collisions(bodies, f, colours, e, mu, touching, settings.restitution_threshold,
                            settings.impact_iterations)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
