@@ -1,11 +1,11 @@
-"""Gathers by indices known when tracing, written as slices.
+"""Static tables and gathers by static indices, with no captured array constant.
 
-``x[np.array([...])]`` captures the index array as a constant of the jaxpr. Inside a
+``x[np.array([...])]`` or ``jnp.asarray(table)`` captures an array constant in the jaxpr. Inside a
 differentiated ``lax.cond`` (the contact step's branches, a rollout's free-or-contact
 chunks) every constant the backward pass needs becomes a residual: JAX's partial
 evaluation of ``cond`` does not forward its operands, so the forward ``cond`` outputs a
 copy of each, and a rollout's loop stacks those copies at every iteration. A slice with
-static bounds carries no constant.
+static bounds carries no constant, nor does a stack of scalars (each a literal).
 """
 
 from __future__ import annotations
@@ -46,7 +46,6 @@ def take_rows(x: jax.Array, indices: Sequence[int] | np.ndarray) -> jax.Array:
     if not pieces:
         return x[:0]
     return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces)
-
 
 
 def literal_array(values, dtype=jnp.int32) -> jax.Array:

@@ -145,6 +145,15 @@ def test_bad_coefficients_are_refused(kwargs, message):
         scene.params(**kwargs)
 
 
+def test_coefficients_of_the_wrong_shape_are_refused_by_the_step():
+    """Params.replace does not validate; the step does, before a gather could clamp a short
+    array's missing pairs to its last entry."""
+    scene = ball_scene()
+    params = scene.params(friction=0.5).replace(friction=jnp.asarray([0.5, 0.5]))
+    with pytest.raises(ValueError, match="needs one per contact pair"):
+        rb.make_step(scene, SPLIT, 1e-3)(params, scene.state(params, position=(0, 0, 0.1)))
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [({"solver": "lemke"}, "'pgs' or 'exact'"), ({"iterations": 0}, "positive integer"),
@@ -244,7 +253,7 @@ def test_the_contact_step_captures_no_array_constant():
 def test_a_step_near_the_ground_that_stays_apart_is_free_flight():
     """With the time-of-impact search, a step is a contact step only where a pair touches at
     its start or closes during it, not wherever a pair is within the margin (0.02 m here)."""
-    from jaxrb.contact._step import _Ctx, _branch_test, _contact_step, far_from_contact
+    from jaxrb.contact._step import _branch_test, _contact_step, _Ctx, far_from_contact
 
     scene, dt = ball_scene(), 1e-3
     params = scene.params(restitution=0.8, friction=0.5)

@@ -136,7 +136,7 @@ def test_stack_gradients_match_finite_differences_where_the_sweeps_have_not_conv
     step = rb.make_step(scene, rb.integrators.SemiImplicitEuler(), 1e-2)
 
     def pushed(x):
-        params = scene.params(dtype=jnp.float64).replace(friction=jnp.stack([x[0], x[0]]))
+        params = scene.params(dtype=jnp.float64).replace(friction=jnp.stack([x[0], x[0], x[0]]))  # 3 pairs
         velocity = jnp.stack([jnp.zeros(3), jnp.stack([x[1], 0.0, 0.0])])
         state = scene.state(params, position=((0.0, 0.0, 0.1), (0.0, 0.0, 0.3)), velocity=velocity)
         end, traj = rb.rollout(step, params, state, 40)

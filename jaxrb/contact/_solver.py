@@ -123,10 +123,13 @@ def frames(bodies: Bodies, body_a, body_b, point, normal, position) -> Frames:
     """
     pad = lambda x, value: jnp.concatenate([x, jnp.full((1, *x.shape[1:]), value, x.dtype)])  # noqa: E731
     n_rows = bodies.inv_mass.shape[0]
-    # Static indices (a layout's) become literals, not a captured constant (jaxrb._indexing).
-    padded = lambda b: (literal_array([*np.asarray(b).reshape(-1), n_rows - 1])  # noqa: E731
-                        if isinstance(b, (tuple, list, np.ndarray))
-                        else jnp.concatenate([jnp.asarray(b, jnp.int32), jnp.array([n_rows - 1], jnp.int32)]))
+
+    def padded(body):
+        """The slots' body rows and the padding slot's (the padding body, ``N + 1``)."""
+        if isinstance(body, (tuple, list, np.ndarray)):  # a layout's: literals (jaxrb._indexing)
+            return literal_array([*np.asarray(body).reshape(-1), n_rows - 1])
+        return jnp.concatenate([jnp.asarray(body, jnp.int32), jnp.array([n_rows - 1], jnp.int32)])
+
     body_a, body_b = padded(body_a), padded(body_b)
     point = pad(point, 0.0)
     normal = pad(normal, 0.0).at[-1, 2].set(1.0)

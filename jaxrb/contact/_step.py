@@ -117,6 +117,14 @@ def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
 
 def _slot_coefficients(layout: Layout, params: Params):
     """Each slot's ``(e, mu)`` ``(C,)``, from its pair's (static slices: see jaxrb._indexing)."""
+    pairs = max(layout.pair, default=-1) + 1
+    for name in ("restitution", "friction"):
+        shape = getattr(params, name).shape
+        if shape != (pairs,):
+            # A gather would clamp a short array's missing pairs to its last entry, silently.
+            raise ValueError(f"Params.{name} has shape {shape}; the scene has {pairs} contact pairs and "
+                             f"needs one per contact pair, in the order of scene.contact_pairs "
+                             f"(scene.params(...) builds it, also from a per-pair dict).")
     return take_rows(params.restitution, layout.pair), take_rows(params.friction, layout.pair)
 
 
