@@ -75,7 +75,8 @@ def _touching_distance(settings: ContactSettings, margin: float) -> float:
     penetration slop, which a resting contact keeps) or closes. Without the search, the
     margin: its speculative constraints are then what stops a pair from passing.
     Measured on the 1000-step bouncing ball (``benchmarks/gradients.py``'s scene): the
-    contact steps around each impact went from 11 (the margin, 0.02 m at 4.4 m/s) to 1 (the step of the impact).
+    contact steps around each impact went from 11 (the margin, 0.02 m at 4.4 m/s) to 1
+    (the step of the impact), and its gradient from 4.82 to 4.03 ms (side by side).
     """
     if not settings.time_of_impact:
         return margin
