@@ -425,17 +425,27 @@ class Scene:
             out.append(jnp.maximum(va, vb) if what == "restitution" else jnp.sqrt(va * vb))
         return jnp.stack(out) if out else jnp.zeros((0,), dtype)
 
-    def check_params(self, params: Params) -> None:
-        """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
+    def check_shapes(self, params: Params, fields=None) -> None:
+        """Raise ``ValueError`` if a field of ``params`` (all, or those named) has the wrong
+        shape for this scene. Shapes only, so it also works on traced values."""
         n = self.num_bodies
         p = self.num_contact_pairs
         expected = {"mass": (n,), "inertia": (n, 3, 3), "gravity": (3,),
                     "linear_damping": (n,), "angular_damping": (n,),
                     "restitution": (p,), "friction": (p,)}
-        for field, shape in expected.items():
-            value = getattr(params, field)
-            if value.shape != shape:
-                raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.")
+        for field in expected if fields is None else fields:
+            value, shape = getattr(params, field), expected[field]
+            if value.shape == shape:
+                continue
+            if field in ("restitution", "friction"):
+                raise ValueError(f"Params.{field} has shape {value.shape}; this scene has {p} contact pairs "
+                                 f"and needs one per contact pair, in the order of scene.contact_pairs "
+                                 f"(scene.params(...) builds it, also from a per-pair dict).")
+            raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.")
+
+    def check_params(self, params: Params) -> None:
+        """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
+        self.check_shapes(params)
         for i, name in enumerate(self.body_names):
             _inertia.check_mass_properties(
                 np.asarray(params.mass[i]), np.asarray(params.inertia[i]), name=f"Body {name!r}"

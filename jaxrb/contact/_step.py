@@ -116,16 +116,12 @@ def _normal_velocity(bodies: Bodies, f: Frames) -> jax.Array:
     return normal_velocities(bodies, f)[:-1]
 
 
-def _slot_coefficients(layout: Layout, params: Params):
+def _slot_coefficients(ctx: _Ctx, params: Params):
     """Each slot's ``(e, mu)`` ``(C,)``, from its pair's (static slices: see jaxrb._indexing)."""
-    pairs = max(layout.pair, default=-1) + 1
-    for name in ("restitution", "friction"):
-        shape = getattr(params, name).shape
-        if shape != (pairs,):
-            # A gather would clamp a short array's missing pairs to its last entry, silently.
-            raise ValueError(f"Params.{name} has shape {shape}; the scene has {pairs} contact pairs and "
-                             f"needs one per contact pair, in the order of scene.contact_pairs "
-                             f"(scene.params(...) builds it, also from a per-pair dict).")
+    # Params.replace does not validate, and a gather clamped a short array's missing pairs
+    # to its last entry, silently.
+    ctx.scene.check_shapes(params, ("restitution", "friction"))
+    layout = ctx.layout
     return take_rows(params.restitution, layout.pair), take_rows(params.friction, layout.pair)
 
 
@@ -184,7 +180,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
 
     start, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
     f = frames(start, layout.body_a, layout.body_b, contact.point, contact.normal, position)
-    e, mu = _slot_coefficients(layout, params)
+    e, mu = _slot_coefficients(ctx, params)
     gap = contact.gap
     colours = literal_array(layout.colours)
     # Impacts first, at the start of the step, on the velocities there: slots that touch or
@@ -287,7 +283,7 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
     contact = detect(scene, layout, state, ctx.margin)
     bodies, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
-    e, mu = _slot_coefficients(layout, params)
+    e, mu = _slot_coefficients(ctx, params)
     touching = contact.active & (contact.gap <= TOUCHING)
     colours = literal_array(layout.colours)
     solved, _ = collisions(bodies, f, colours, e, mu, touching, settings.restitution_threshold,
