@@ -448,6 +448,37 @@ def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     assert float(jnp.max(jnp.abs(outside))) > 1e-6  # linear damping: the heights depend on the mass
 
 
+def test_contact_rollouts_read_the_params_from_one_array():
+    """With contacts, rollout's steps read the params (and the integrator's derived
+    quantities) from one flat array (simulate._packed): it unpacks to the same leaves, is
+    not used where the leaves' dtypes differ, and the rollout equals calling the step
+    itself (which reads them as they are), step after step."""
+    from jaxrb.simulate import _packed
+
+    step, params, state = _bouncing_ball()
+    derived = step.integrator.precompute(params)
+    flat, unpack = _packed((params, derived))
+    leaves = jax.tree.leaves((params, derived))
+    assert flat.shape == (sum(x.size for x in leaves),) and flat.dtype == jnp.float64
+    for x, y in zip(jax.tree.leaves(unpack(flat)), leaves, strict=True):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_array_equal(x, y)
+    mixed = (params, jnp.zeros(3, jnp.float32))
+    assert _packed(mixed) == (mixed, None)
+    with_int = (params, jnp.zeros(3, jnp.int32))
+    assert _packed(with_int) == (with_int, None)
+    assert _packed(None) == (None, None)
+
+    steps = 30
+    _, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, steps))(params, state)
+    s, expected = step.prepare(state), []
+    for _ in range(steps):
+        s = step(params, s)
+        expected.append(s.position)
+    np.testing.assert_allclose(traj.position, jnp.stack(expected), rtol=1e-13, atol=1e-15)
+    assert float(traj.position[:, 0, 2].min()) < 0.11  # contact steps ran: it reached the ground
+
+
 def test_chunk_length_fits_the_sequential_threshold():
     from jaxrb.simulate import MAX_CHUNK, SEQUENTIAL_BUFFER_BYTES, _chunk_length
 
