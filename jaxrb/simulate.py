@@ -208,21 +208,27 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
     # unchanged within this machine's noise.
     state = _with_tangent_of(state, params)
     t0 = state.time
+    # Groups of steps tried as free flight first (see _speculative): the chunks of a
+    # recording rollout, or segments of save_every steps (in parts of attempt_length).
+    attempt_length = _attempt_length(save_every) if save_every > 1 and _speculates(step) else None
+    speculative = attempt_length is not None or (chunk > 1 and _speculates(step))
     if isinstance(step, Step):
         # Params-only quantities (e.g. principal axes), once per rollout instead of per step.
         derived = step.integrator.precompute(params)
-        # With contacts, the steps read the params and ``derived`` from one flat array.
-        # Reverse mode through the chunk's ``cond`` (see _speculative) copies every value
-        # its contact branch's derivative reads out of the cond (JAX's cond partial
-        # evaluation does not forward operands), and the loop then stacks those copies at
-        # every chunk, and adds up their cotangents: one array instead of nine. Measured
+        # Where groups are tried as free flight, the contact steps read the params and
+        # ``derived`` from one flat array. Reverse mode through the group's ``cond``
+        # copies every value its contact branch's derivative reads out of the cond (JAX's
+        # cond partial evaluation does not forward operands), and the loop then stacks
+        # those copies at every chunk, and adds up their cotangents: one array instead of
+        # nine. Measured
         # (benchmarks/README.md, "Packed parameters"): the 1000-step bouncing ball's
         # gradient runs 2.7-2.9% fewer kernels and is 2-8% faster, its forward unchanged;
         # a sliding box's forward is 22-25% faster (its profile then shows every kernel on
         # one thread instead of alternating between two; why is not known). The free steps
         # keep the params as they are: unpacked there, the split was one more kernel a
-        # step in the forward.
-        constants, unpack = _packed((params, derived)) if _speculates(step) else ((params, derived), None)
+        # step in the forward, and a long segment's steps (not tried as free flight) ran
+        # 18% slower from it (benchmarks/README.md, "Long segments").
+        constants, unpack = _packed((params, derived)) if speculative else ((params, derived), None)
 
         def one_step(c, s):
             p, d = c if unpack is None else unpack(c)
@@ -267,12 +273,19 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
 
         (final, _), trajectory = jax.lax.scan(chunk_of_steps, start, None, length=num_steps // chunk)
         return final, jax.tree.map(lambda x: x.reshape((num_steps, *x.shape[2:])), trajectory)
-    if save_every > 1 and _speculates(step):
+    if attempt_length is not None:
         # Each segment of save_every steps, which records its last state only, is tried as
-        # free flight first in the same way (then inside the checkpoint, if any).
-        contact_segment = segment
-        segment = _speculative(step, params, derived, lambda c: contact_segment(c, None)[0], save_every, t0,
-                               record=False)
+        # free flight first in the same way (then inside the checkpoint, if any), in parts
+        # of attempt_length steps where it is longer than a chunk.
+        def contact_steps(carry):
+            return jax.lax.scan(advance, carry, None, length=attempt_length)[0]
+
+        attempt = _speculative(step, params, derived, contact_steps, attempt_length, t0, record=False)
+
+        def segment(carry, _):
+            carry = jax.lax.scan(lambda c, _: (attempt(c, None)[0], None), carry, None,
+                                 length=save_every // attempt_length)[0]
+            return carry, carry[0]
     if checkpoint:
         # Rematerialise each segment in the backward pass: memory O(num_steps / save_every
         # + save_every) states instead of O(num_steps).
@@ -375,6 +388,26 @@ def _speculative(step: Step, params: Params, derived, contact_steps, length: int
 SEQUENTIAL_BUFFER_BYTES = 512
 #: The most steps one chunk of a recorded rollout stacks (see :func:`_chunk_length`).
 MAX_CHUNK = 16
+#: The fewest steps a part of a longer segment is tried as free flight in (see
+#: :func:`_attempt_length`).
+MIN_ATTEMPT = 8
+
+
+def _attempt_length(save_every: int) -> int | None:
+    """Steps tried as free flight at once in a segment of ``save_every`` steps (see
+    :func:`_speculative`), or ``None``: not tried, the segment's steps run as contact
+    steps, each taking its own free branch where it is far from contact.
+
+    An attempt that fails is discarded whole, so a long one wastes up to its length in free
+    steps: a 2,554-step segment with three bounces ran at 0.71 million steps/s tried whole
+    and 1.70 million not tried (float32, benchmarks/README.md, "Long segments"). A segment
+    of at most :data:`MAX_CHUNK` steps is tried whole; a longer one in parts, the largest
+    divisor of ``save_every`` from :data:`MIN_ATTEMPT` to :data:`MAX_CHUNK` (smaller parts
+    pay a ``cond`` and a test for too few steps); none where there is no such divisor.
+    """
+    if save_every <= MAX_CHUNK:
+        return save_every
+    return next((n for n in range(MAX_CHUNK, MIN_ATTEMPT - 1, -1) if save_every % n == 0), None)
 
 
 def _chunk_length(state: State, num_steps: int) -> int:
@@ -425,10 +458,11 @@ def rollout(
     With ``save_every=1`` and a scene of a few bodies, the states are stacked in chunks
     of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
     ball's forward by 25%), with the values of the step-by-step loop. With contacts, a
-    chunk (or, with ``save_every > 1``, a segment of ``save_every`` steps) that starts far
-    from every contact is first run as plain free steps, and kept if none of them came
-    near one (else run again as contact steps): the same states, and a gradient a quarter
-    faster for the ball, twice as fast in flight.
+    chunk (or, with ``save_every > 1``, a segment of ``save_every`` steps, or each part of
+    8 to 16 steps of a longer one) that starts far from every contact is first run as
+    plain free steps, and kept if none of them came near one (else run again as contact
+    steps): the same states, and a gradient a quarter faster for the ball, twice as fast in
+    flight.
 
     Returns:
         ``final``: the state after ``num_steps`` steps. ``trajectory``: the states after

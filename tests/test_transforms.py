@@ -400,6 +400,35 @@ def test_free_segments_equal_the_step_by_step_loop_with_its_derivatives():
         np.testing.assert_array_equal(batched[i], jax.jit(by_step)(params, one)[1].position)
 
 
+def test_long_segments_are_tried_as_free_flight_in_parts():
+    """A segment longer than a chunk is tried as free flight in parts (the largest divisor
+    of save_every from 8 to 16 steps), not whole: a failed attempt is discarded whole, and
+    a 2,554-step segment with three bounces ran 2.4x slower tried whole. Where save_every
+    has no such divisor, its steps run as contact steps. Either way the states are those
+    of the step-by-step loop, bit for bit, across the impact."""
+    from jaxrb.simulate import MAX_CHUNK, MIN_ATTEMPT, _attempt_length, _scan_steps
+
+    assert [_attempt_length(n) for n in (5, 16, 17, 40, 64, 1000, 3000, 2554, 37)] == [
+        5, 16, None, 10, 16, 10, 15, None, None]
+    for n in range(2, 200):
+        length = _attempt_length(n)
+        assert length is None or (n % length == 0 and (length == n <= MAX_CHUNK or MIN_ATTEMPT <= length <= MAX_CHUNK))
+
+    step, params, state = _bouncing_ball()
+    step = rb.make_step(step.scene, step.integrator, step.dt, contact=rb.ContactSettings(
+        time_of_impact=False, iterations=4, impact_iterations=2, position_iterations=2))
+    for steps, every, tried in [(80, 40, True), (74, 37, False)]:
+        with _counting_free_attempts() as attempts:
+            final, traj = jax.jit(lambda p, s, n=steps, k=every: rb.rollout(step, p, s, n, save_every=k))(
+                params, state)
+        assert bool(attempts) == tried
+        final_ref, traj_ref = jax.jit(lambda p, s, n=steps: _scan_steps(step, p, s, n, 1, False, 1))(params, state)
+        assert float(traj_ref.velocity[:, 0, 2].max()) > 1.0  # it fell from rest and bounced
+        np.testing.assert_array_equal(traj.position, traj_ref.position[every - 1::every])
+        for x, y in zip(jax.tree.leaves(final), jax.tree.leaves(final_ref), strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
 def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     """Reverse mode with respect to both arguments and to either alone, forward mode, and
     both under vmap in either order, as through the plain loop. (A free body: the nested
