@@ -220,14 +220,13 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
         # copies every value its contact branch's derivative reads out of the cond (JAX's
         # cond partial evaluation does not forward operands), and the loop then stacks
         # those copies at every chunk, and adds up their cotangents: one array instead of
-        # nine. Measured
-        # (benchmarks/README.md, "Packed parameters"): the 1000-step bouncing ball's
-        # gradient runs 2.7-2.9% fewer kernels and is 2-8% faster, its forward unchanged;
-        # a sliding box's forward is 22-25% faster (its profile then shows every kernel on
-        # one thread instead of alternating between two; why is not known). The free steps
-        # keep the params as they are: unpacked there, the split was one more kernel a
-        # step in the forward, and a long segment's steps (not tried as free flight) ran
-        # 18% slower from it (benchmarks/README.md, "Long segments").
+        # nine. Measured (benchmarks/README.md, "Packed parameters"): the 1000-step
+        # bouncing ball's gradient runs 2.7-2.9% fewer kernels and is 2-8% faster, its
+        # forward unchanged; a sliding box's forward is 22-25% faster (its profile then
+        # shows every kernel on one thread instead of alternating between two; why is not
+        # known). The free steps keep the params as they are: unpacked there, the split
+        # was one more kernel a step in the forward, and a long segment's steps (not tried
+        # as free flight) ran 18% slower from it (benchmarks/README.md, "Long segments").
         constants, unpack = _packed((params, derived)) if speculative else ((params, derived), None)
 
         def one_step(c, s):
@@ -282,10 +281,13 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
 
         attempt = _speculative(step, params, derived, contact_steps, attempt_length, t0, record=False)
 
-        def segment(carry, _):
-            carry = jax.lax.scan(lambda c, _: (attempt(c, None)[0], None), carry, None,
-                                 length=save_every // attempt_length)[0]
-            return carry, carry[0]
+        if attempt_length == save_every:  # no loop of length 1 (its residuals would be stacked twice)
+            segment = attempt
+        else:
+            def segment(carry, _):
+                carry = jax.lax.scan(lambda c, _: (attempt(c, None)[0], None), carry, None,
+                                     length=save_every // attempt_length)[0]
+                return carry, carry[0]
     if checkpoint:
         # Rematerialise each segment in the backward pass: memory O(num_steps / save_every
         # + save_every) states instead of O(num_steps).
