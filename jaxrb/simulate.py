@@ -409,7 +409,12 @@ def _attempt_length(save_every: int) -> int | None:
     """
     if save_every <= MAX_CHUNK:
         return save_every
-    return next((n for n in range(MAX_CHUNK, MIN_ATTEMPT - 1, -1) if save_every % n == 0), None)
+    return _largest_divisor(save_every, MAX_CHUNK, MIN_ATTEMPT)
+
+
+def _largest_divisor(n: int, most: int, least: int) -> int | None:
+    """The largest divisor of ``n`` from ``least`` to ``most``, or ``None``."""
+    return next((d for d in range(most, least - 1, -1) if n % d == 0), None)
 
 
 def _chunk_length(state: State, num_steps: int) -> int:
@@ -428,10 +433,8 @@ def _chunk_length(state: State, num_steps: int) -> int:
     are larger: there chunking was measured neutral (1024 balls, 4096 free bodies).
     """
     largest = max((x.size * x.dtype.itemsize for x in jax.tree.leaves(state)), default=1)
-    chunk = min(MAX_CHUNK, num_steps, SEQUENTIAL_BUFFER_BYTES // max(largest, 1))
-    while chunk > 1 and num_steps % chunk:
-        chunk -= 1
-    return max(chunk, 1)
+    longest = min(MAX_CHUNK, num_steps, SEQUENTIAL_BUFFER_BYTES // max(largest, 1))
+    return _largest_divisor(num_steps, longest, 2) or 1
 
 
 def rollout(
