@@ -508,6 +508,25 @@ def test_sweeps_stop_at_their_tolerance():
     assert int(results[None][2]) == 20 and int(results[0.0][2]) == 2 and int(results[1e-8][2]) == 2
     for tol in (0.0, 1e-8):
         np.testing.assert_array_equal(results[tol][1], results[None][1])
+        # The while loop that ends there (the primal of a step's solve) runs the same sweeps.
+        ended = sweeps(bodies, f, colours, target, mu, active, lam, 20, tolerance=tol, early_exit=True)
+        assert int(ended[2]) == 2
+        np.testing.assert_array_equal(ended[1], results[tol][1])
+        np.testing.assert_array_equal(ended[0].velocity, results[tol][0].velocity)
+    # Under vmap each member keeps its own count: a member that starts at the solution stops
+    # after one sweep while the other runs its two.
+    solved = jnp.stack([lam, results[None][1]])
+    velocity = jnp.stack([bodies.velocity, results[None][0].velocity])
+    spin = jnp.stack([bodies.angular_velocity, results[None][0].angular_velocity])
+
+    def batched(lam0, v, w, early_exit):
+        b = Bodies(bodies.inv_mass, bodies.inv_inertia, v, w)
+        return sweeps(b, f, colours, target, mu, active, lam0, 20, tolerance=0.0, early_exit=early_exit)
+
+    for early_exit in (False, True):
+        out = jax.vmap(lambda x, v, w, e=early_exit: batched(x, v, w, e))(solved, velocity, spin)
+        np.testing.assert_array_equal(out[2], [2, 1])
+        np.testing.assert_array_equal(out[1][1], results[None][1])
     # World frame: the normal impulse stops the approach (0.5 N s up); friction, at its bound
     # mu times that (the slip of 0.3 m/s needs 0.3 / 1.1 N s), opposes the slip along x.
     world = np.asarray(f.basis[0]).T @ np.asarray(results[None][1][0])

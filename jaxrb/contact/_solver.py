@@ -176,10 +176,15 @@ def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
 class _Colour(eqx.Module):
     """The slots of the colours, gathered once per solve: leading axes ``(K, W)`` (one colour
     of ``W`` slots per row). A sweep then scans over these rows, so the loop body reads its
-    slots' data as a slice instead of gathering it by index on every visit."""
+    slots' data as a slice instead of gathering it by index on every visit, with the
+    quantities that do not change between sweeps (reciprocals of the Delassus block's
+    normal entry and of its largest tangential eigenvalue) computed once.
 
-    a: Array
-    b: Array
+    A slot's *pair twist* is ``(v_a, w_a, v_b, w_b)`` ``(12,)``, the twists of its two
+    bodies; ``rows`` ``(K, 2W)`` lists the body rows ``a_0, b_0, a_1, b_1, ...``, so that a
+    colour's pair twists are one gather (and one scatter back)."""
+
+    rows: Array
     inv_mass_a: Array
     inv_mass_b: Array
     inv_inertia_a: Array
@@ -187,55 +192,56 @@ class _Colour(eqx.Module):
     r_a: Array
     r_b: Array
     basis: Array
-    delassus: Array
+    inv_k_nn: Array
+    k_tn: Array
+    inv_k_max: Array
+
+
+def _safe_reciprocal(x):
+    """``1 / x`` where ``x > 0``, else 0, with a finite derivative everywhere."""
+    positive = x > 0
+    return jnp.where(positive, 1.0 / jnp.where(positive, x, 1.0), 0.0)
 
 
 def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
     idx = jnp.asarray(colours)
     a, b = f.body_a[idx], f.body_b[idx]
-    return _Colour(a, b, bodies.inv_mass[a], bodies.inv_mass[b], bodies.inv_inertia[a], bodies.inv_inertia[b],
-                   f.r_a[idx], f.r_b[idx], f.basis[idx], f.delassus[idx])
+    delassus = f.delassus[idx]
+    return _Colour(jnp.stack([a, b], -1).reshape(a.shape[0], -1),
+                   bodies.inv_mass[a], bodies.inv_mass[b], bodies.inv_inertia[a], bodies.inv_inertia[b],
+                   f.r_a[idx], f.r_b[idx], f.basis[idx], _safe_reciprocal(delassus[..., 0, 0]),
+                   delassus[..., 1:, 0], _safe_reciprocal(_largest_tangential_eigenvalue(delassus)))
 
 
-class _Local(eqx.Module):
-    """One colour's bodies' twists ``(W, 6)`` (velocity, then angular velocity), updated in
-    place of the global rows. One array per side, not four: XLA:CPU emits a kernel per
-    output array of the loop body, and the sweeps run this body hundreds of times a step."""
-
-    ta: Array
-    tb: Array
+def _gather(c: _Colour, twist):
+    """The colour's pair twists ``(W, 12)`` from the global rows ``(N + 2, 6)``."""
+    return twist[c.rows].reshape(c.inv_k_nn.shape[0], 12)
 
 
-def _gather(c: _Colour, twist) -> _Local:
-    return _Local(twist[c.a], twist[c.b])
-
-
-def _scatter(c: _Colour, twist, end: _Local):
-    """Write the colour's new twists into the global rows ``(N + 2, 6)``.
+def _scatter(c: _Colour, twist, end):
+    """Write the colour's new pair twists ``(W, 12)`` into the global rows ``(N + 2, 6)``.
 
     No two slots of a colour share a dynamic body, so each dynamic row is written once; the
     static rows (ground, padding) may be written by several slots, all with their unchanged
     value (zero inverse mass). Writing values, not adding differences, keeps float32 from
     rounding each update twice (``v + ((v + dv) - v)``).
     """
-    return twist.at[c.a].set(end.ta).at[c.b].set(end.tb)
+    return twist.at[c.rows].set(end.reshape(-1, 6))
 
 
-def _local_velocity(c: _Colour, v: _Local):
+def _local_velocity(c: _Colour, pair):
     """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis."""
-    ua = v.ta[:, :3] + spatial.cross(v.ta[:, 3:], c.r_a)
-    ub = v.tb[:, :3] + spatial.cross(v.tb[:, 3:], c.r_b)
+    ua = pair[:, 0:3] + spatial.cross(pair[:, 3:6], c.r_a)
+    ub = pair[:, 6:9] + spatial.cross(pair[:, 9:12], c.r_b)
     return spatial.matvec(c.basis, ua - ub)
 
 
-def _local_apply(c: _Colour, v: _Local, local_impulse) -> _Local:
+def _local_apply(c: _Colour, pair, local_impulse):
     """``+P`` on A and ``-P`` on B, ``P`` given in the slot basis ``(W, 3)``."""
     impulse = spatial.matvec(spatial.transpose(c.basis), local_impulse)
-    da = jnp.concatenate([c.inv_mass_a[:, None] * impulse,
-                          spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse))], -1)
-    db = jnp.concatenate([c.inv_mass_b[:, None] * impulse,
-                          spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse))], -1)
-    return _Local(v.ta + da, v.tb - db)
+    return pair + jnp.concatenate([
+        c.inv_mass_a[:, None] * impulse, spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse)),
+        -c.inv_mass_b[:, None] * impulse, -spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse))], -1)
 
 
 def _friction_step(c: _Colour, u_t, old_t, radius, on):
@@ -246,8 +252,7 @@ def _friction_step(c: _Colour, u_t, old_t, radius, on):
     A projected-gradient step of length at most ``1/k_max`` cannot add energy.
     ``u_t`` ``(W, 2)`` is the tangential slip. Returns the change of the tangential impulse
     ``(W, 2)``."""
-    k_max = _largest_tangential_eigenvalue(c.delassus)
-    wanted = old_t - u_t / k_max[:, None]
+    wanted = old_t - u_t * c.inv_k_max[:, None]
     norm = spatial.safe_norm(wanted)
     scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
     return jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
@@ -259,16 +264,15 @@ def _slip_after(c: _Colour, u, d_n):
     The Delassus block is exact for a colour (its slots share no moving body), so this is
     what applying ``d_n`` and measuring the velocities again would give, and one impulse
     (normal and friction together) is applied per update instead of two."""
-    return u[:, 1:] + c.delassus[:, 1:, 0] * d_n[:, None]
+    return u[:, 1:] + c.k_tn * d_n[:, None]
 
 
-def _update(c: _Colour, v: _Local, lam, target, mu, on, friction: bool):
+def _update(c: _Colour, v, lam, target, mu, on, friction: bool):
     """One projected Gauss-Seidel update of one colour's slots; ``lam`` is theirs ``(W, 3)``."""
     u = _local_velocity(c, v)
     # Normal: reach u_n = target, keep lambda_n >= 0, and never push past the elastic bound.
-    k_nn = c.delassus[:, 0, 0]
-    raw = (target - u[:, 0]) / k_nn
-    elastic_cap = jnp.maximum(-2.0 * u[:, 0] / k_nn, 0.0)
+    raw = (target - u[:, 0]) * c.inv_k_nn
+    elastic_cap = jnp.maximum(-2.0 * u[:, 0] * c.inv_k_nn, 0.0)
     step = jnp.where(raw > 0, jnp.minimum(raw, elastic_cap), raw)
     new_n = jnp.where(on, jnp.maximum(lam[:, 0] + step, 0.0), 0.0)
     d_n = new_n - lam[:, 0]
@@ -280,7 +284,7 @@ def _update(c: _Colour, v: _Local, lam, target, mu, on, friction: bool):
     return v, jnp.concatenate([new_n[:, None], lam[:, 1:] + d_t], -1)
 
 
-def _collision_update(c: _Colour, v: _Local, e, mu, eligible, threshold):
+def _collision_update(c: _Colour, v, e, mu, eligible, threshold):
     """Binary collisions of one colour's slots that approach faster than ``threshold``.
 
     The seed's impulse from the *current* relative velocity, ``j = -(1 + e) u_n / K_nn``,
@@ -289,14 +293,14 @@ def _collision_update(c: _Colour, v: _Local, e, mu, eligible, threshold):
     """
     u = _local_velocity(c, v)
     hit = eligible & (u[:, 0] < -threshold)
-    j = jnp.where(hit, -(1.0 + e) * u[:, 0] / c.delassus[:, 0, 0], 0.0)
+    j = jnp.where(hit, -(1.0 + e) * u[:, 0] * c.inv_k_nn, 0.0)
     d_t = _friction_step(c, _slip_after(c, u, j), jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
     impulse = jnp.concatenate([j[:, None], d_t], -1)
     return _local_apply(c, v, impulse), impulse
 
 
 def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int,
-                   tolerance: float | None = None):
+                   tolerance: float | None = None, early_exit: bool = False):
     """At most ``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot
     arrays ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites.
 
@@ -304,6 +308,11 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     ``per_slot`` by more than ``tolerance`` times the largest (0: by nothing at all): the
     later sweeps are skipped at run time by a cond inside the ``lax.scan`` (so reverse mode
     still crosses them; under ``vmap``, once every member is done: ``jaxrb._branch``).
+    With ``early_exit`` as well, the sweeps are a ``lax.while_loop`` that ends there
+    instead: reverse mode cannot cross it, so it serves only where the derivative is taken
+    by other means (:func:`_pgs`'s rule). A settled 5-box stack runs one sweep of its 20 a
+    step; each skipped one cost it a ``cond``, copies of its operands and the test, 133
+    kernels a step in all (benchmarks/README.md, "The stack's sweeps").
     Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
     idx = jnp.asarray(colours)
@@ -319,18 +328,28 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     def run(twist, values, c, data):
         return jax.lax.scan(colour_step, twist, (c, data, values))
 
+    def converged(new, values):
+        return jnp.max(jnp.abs(new - values)) <= tolerance * jnp.max(jnp.abs(new))
+
     def sweep(carry, _):
         twist, values, count, done = carry
         if tolerance is None:
             return (*run(twist, values, c, data), count + 1, done), None
         # (An ensemble skips a sweep once all its members are done: see ``_branch``.)
         twist, new = branch(done, lambda t, v, *_: (t, v), run, twist, values, c, data)
-        change = jnp.max(jnp.abs(new - values))
-        return (twist, new, count + jnp.where(done, 0, 1), done | (change <= tolerance * jnp.max(jnp.abs(new)))), None
+        return (twist, new, count + jnp.where(done, 0, 1), done | converged(new, values)), None
+
+    def next_sweep(carry):
+        twist, values, count, _ = carry
+        twist, new = run(twist, values, c, data)
+        return twist, new, count + 1, converged(new, values)
 
     twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)
     start = (twist, per_slot[idx], jnp.zeros((), jnp.int32), jnp.zeros((), bool))
-    (twist, values, count, _), _ = jax.lax.scan(sweep, start, None, length=iterations)
+    if early_exit and tolerance is not None:
+        twist, values, count, _ = jax.lax.while_loop(lambda x: (x[2] < iterations) & ~x[3], next_sweep, start)
+    else:
+        (twist, values, count, _), _ = jax.lax.scan(sweep, start, None, length=iterations)
     velocity, omega = twist[:, :3], twist[:, 3:]
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     # Padding entries of ``colours`` all point at the inert slot C, whose value stays 0.
@@ -361,9 +380,9 @@ def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, i
 
 
 def _largest_tangential_eigenvalue(k):
-    k_tt = k[:, 1:, 1:]
-    spread = spatial.safe_norm(jnp.stack([0.5 * (k_tt[:, 0, 0] - k_tt[:, 1, 1]), k_tt[:, 0, 1]], -1))
-    return 0.5 * (k_tt[:, 0, 0] + k_tt[:, 1, 1]) + spread
+    k_tt = k[..., 1:, 1:]
+    spread = spatial.safe_norm(jnp.stack([0.5 * (k_tt[..., 0, 0] - k_tt[..., 1, 1]), k_tt[..., 0, 1]], -1))
+    return 0.5 * (k_tt[..., 0, 0] + k_tt[..., 1, 1]) + spread
 
 
 def pad_slots(target, mu, active, lam0):
@@ -374,15 +393,15 @@ def pad_slots(target, mu, active, lam0):
 
 
 def sweeps(bodies: Bodies, f: Frames, colours, target, mu, active, lam, iterations: int, friction: bool = True,
-           tolerance: float | None = None):
+           tolerance: float | None = None, early_exit: bool = False):
     """At most ``iterations`` projected Gauss-Seidel sweeps on padded slot arrays (``lam``
-    already applied); see :func:`_colour_sweeps` for ``tolerance``. Returns the bodies,
-    the impulses and the number of sweeps run."""
+    already applied); see :func:`_colour_sweeps` for ``tolerance`` and ``early_exit``.
+    Returns the bodies, the impulses and the number of sweeps run."""
 
     def update(c, v, lam, target, mu, on):
         return _update(c, v, lam, target, mu, on, friction)
 
-    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations, tolerance)
+    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations, tolerance, early_exit)
 
 
 def solve(
@@ -422,14 +441,17 @@ def solve(
     return bodies, lam[:-1]
 
 
-def _pgs(iterations: int, friction: bool, tolerance, bodies: Bodies, f: Frames, colours, target, mu, active, lam):
+def _pgs_sweeps(iterations: int, friction: bool, tolerance, early_exit: bool, bodies: Bodies, f: Frames, colours,
+                target, mu, active, lam):
     """The sweeps of :func:`solve` on padded slots, from ``lam`` (not yet applied to ``bodies``):
     the velocities and spins after them, the accumulated impulses ``(C + 1, 3)`` and the
-    number of sweeps run (a float scalar, so that it has a tangent, zero, like the rest)."""
+    number of sweeps run (a float scalar, so that it has a tangent, zero, like the rest).
+    ``early_exit``: see :func:`_colour_sweeps` (not where this is differentiated)."""
 
     def run(_):
         start = apply_impulses(bodies, f, lam)
-        end, impulses, count = sweeps(start, f, colours, target, mu, active, lam, iterations, friction, tolerance)
+        end, impulses, count = sweeps(start, f, colours, target, mu, active, lam, iterations, friction, tolerance,
+                                      early_exit)
         return end.velocity, end.angular_velocity, impulses, count.astype(lam.dtype)
 
     def idle(_):
@@ -438,6 +460,11 @@ def _pgs(iterations: int, friction: bool, tolerance, bodies: Bodies, f: Frames, 
     # Nothing to solve (a body in flight): skipped at run time (in an ensemble, when no
     # member has anything to solve).
     return branch(jnp.any(active), run, idle, None)
+
+
+def _pgs(iterations: int, friction: bool, tolerance, *args):
+    """:func:`_pgs_sweeps`, ending at the tolerance; differentiated by :func:`_pgs_jvp`."""
+    return _pgs_sweeps(iterations, friction, tolerance, True, *args)
 
 
 _pgs = jax.custom_jvp(_pgs, nondiff_argnums=(0, 1, 2))
@@ -492,7 +519,7 @@ def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
         return d_end.velocity, d_end.angular_velocity, d_lam
 
     def unrolled(_):
-        return jax.jvp(lambda *p: _pgs.fun(iterations, friction, tolerance, *p)[:3], primals, tangents)[1]
+        return jax.jvp(lambda *p: _pgs_sweeps(iterations, friction, tolerance, False, *p)[:3], primals, tangents)[1]
 
     def idle(_):
         return d_bodies.velocity, d_bodies.angular_velocity, jnp.zeros_like(lam)
