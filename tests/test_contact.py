@@ -87,6 +87,26 @@ def test_slot_colouring_is_valid_and_reaches_the_degree_bound():
     _check_colouring(layout_of(rb.Scene(bodies, ground=rb.Plane(), contacts=pairs)))
 
 
+def test_slot_values_are_each_slots_pair_entry():
+    """Per-pair coefficients spread to the slots group by group equal indexing by each
+    slot's pair, in the stack (two groups of 4-slot pairs) and in a mixed scene whose pairs
+    are listed out of group order (1-, 2- and 4-slot groups interleaved)."""
+    from jaxrb.contact._layout import slot_values
+
+    stack = rb.Scene([rb.Body(f"box{i}", shape=BOX, mass=1.0) for i in range(5)], ground=rb.Plane(),
+                     contacts="all")
+    shapes = [rb.Sphere(0.1), BOX, rb.Capsule(0.05, 0.2)]
+    bodies = [rb.Body(f"b{i}", shape=shapes[i % 3], mass=1.0) for i in range(6)]
+    mixed = rb.Scene(bodies, ground=rb.Plane(),
+                     contacts=[("b0", "b1"), ("b0", "ground"), ("b2", "b3"), ("b1", "ground"), ("b0", "b3"),
+                               ("b4", "ground"), ("b2", "ground"), ("b3", "b4")])
+    for scene in (stack, mixed):
+        layout = layout_of(scene)
+        per_pair = jnp.arange(scene.num_contact_pairs, dtype=float) ** 2 + 0.5
+        np.testing.assert_array_equal(slot_values(layout, per_pair), np.asarray(per_pair)[list(layout.pair)])
+        assert len({g.slots for g in layout.groups}) > 1 or scene is stack
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

@@ -27,7 +27,7 @@ from ..scene import GROUND, Scene
 from ..shapes import Box
 from ..state import State
 
-__all__ = ["Layout", "build_layout", "detect", "pair_separations"]
+__all__ = ["Layout", "build_layout", "detect", "pair_separations", "slot_values"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,6 +156,23 @@ def build_layout(scene: Scene) -> Layout:
     width = max((len(c) for c in colours), default=0)
     padded = tuple(tuple(c + [len(body_a)] * (width - len(c))) for c in colours)
     return Layout(n, tuple(groups), tuple(body_a), tuple(body_b), tuple(pair), padded)
+
+
+def slot_values(layout: Layout, per_pair: jax.Array) -> jax.Array:
+    """Each slot's entry of a per-pair array: ``(P, ...)`` -> ``(C, ...)``.
+
+    Slots are laid out group by group, each pair's ``K`` slots together, so this is, per
+    group, its pairs' rows (static slices) each repeated ``K`` times (a broadcast), and one
+    concatenation. Indexing by the ``(C,)`` list of slot pairs instead (60 rows in 15 runs
+    for the 5-box stack) made a slice and a broadcast per run: 15 kernels an array, at
+    every contact step.
+    """
+    parts = []
+    for g in layout.groups:
+        rows = take_rows(per_pair, g.pair_index)
+        parts.append(jnp.broadcast_to(rows[:, None], (rows.shape[0], g.slots, *rows.shape[1:]))
+                     .reshape(rows.shape[0] * g.slots, *rows.shape[1:]))
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
 
 
 def _shape_poses(scene: Scene, state: State):

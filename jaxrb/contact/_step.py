@@ -47,12 +47,12 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
 from .._branch import branch
-from .._indexing import literal_array, take_rows
+from .._indexing import literal_array
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import Scene
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
-from ._layout import Layout, build_layout, detect, pair_separations
+from ._layout import Layout, build_layout, detect, pair_separations, slot_values
 from ._lcp import solve_exact
 from ._settings import ContactSettings
 from ._solver import SAVE_NAMED, SEPARATIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
@@ -122,7 +122,7 @@ def _slot_coefficients(ctx: _Ctx, params: Params):
     # to its last entry, silently.
     ctx.scene.check_shapes(params, ("restitution", "friction"))
     layout = ctx.layout
-    return take_rows(params.restitution, layout.pair), take_rows(params.friction, layout.pair)
+    return slot_values(layout, params.restitution), slot_values(layout, params.friction)
 
 
 def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu, active, lam0):
