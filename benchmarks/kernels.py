@@ -21,14 +21,17 @@ What it measures
 
     Each program runs once to warm up and once under ``jax.profiler.trace``. Every event on
     an XLA worker thread that is a kernel (not a thunk executor, ``while`` or ``cond``
-    wrapper) is counted and attributed to its HLO instruction's ``op_name``: the JAX
-    transformation path and primitive it came from. ``T`` marks the reverse pass
-    (``transpose(...)``); kernels with no ``op_name`` are mostly copies that XLA inserted
+    wrapper) is counted and attributed twice: to its HLO instruction's ``op_name`` (the JAX
+    transformation path and primitive it came from; ``T`` marks the reverse pass,
+    ``transpose(...)``), and to the Python source lines that traced it (``by_line``: the
+    innermost ``--frames`` frames of its call stack inside ``jaxrb/``, from the stack frames
+    the compiled HLO carries). Kernels with neither are mostly copies that XLA inserted
     (loop carries, a ``cond``'s zero-filled residuals).
 
 How to run (from the repository root)
     python benchmarks/kernels.py                  # the ball, 1000 steps
     python benchmarks/kernels.py --scene stack --depth 8   # 10 steps: the profiler records every PGS kernel
+    python benchmarks/kernels.py --scene stack --frames 2  # which lines of jaxrb the kernels come from
     python benchmarks/kernels.py --quick          # CI smoke run, temp dir
 
 It prints a table and writes ``kernels_<scene>.json`` to ``--out`` (default
@@ -95,6 +98,46 @@ def op_names(hlo_text: str) -> dict[str, str]:
             for m in re.finditer(r"%([\w.\-]+) = [^\n]*?op_name=\"([^\"]*)\"", hlo_text)}
 
 
+def _table(hlo_text: str, name: str) -> list[str]:
+    """The lines of one of the tables the HLO text ends with (``FileNames``, ...)."""
+    match = re.search(r"^" + name + r"\n(.*?)(?:\n\n|\Z)", hlo_text, re.S | re.M)
+    return match.group(1).split("\n") if match else []
+
+
+def source_lines(hlo_text: str, frames: int) -> dict[str, str]:
+    """HLO instruction name -> its innermost ``frames`` source frames inside ``jaxrb/``,
+    as ``file:function:line`` joined by `` < `` (innermost first); ``""`` where none.
+
+    The compiled HLO's ``stack_frame_id`` metadata indexes a ``StackFrames`` table (each
+    entry a ``FileLocations`` entry and its parent frame, one-based, 0 for none) whose
+    locations name a ``FileNames`` and a ``FunctionNames`` entry."""
+    def numbered(name):
+        return {int(line.split(" ", 1)[0]): line.split(" ", 1)[1] for line in _table(hlo_text, name)}
+
+    files = {k: v.strip('"') for k, v in numbered("FileNames").items()}
+    functions = {k: v.strip('"') for k, v in numbered("FunctionNames").items()}
+    locations = {}
+    for k, v in numbered("FileLocations").items():
+        m = re.search(r"file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", v)
+        locations[k] = (files[int(m.group(1))], functions[int(m.group(2))], int(m.group(3)))
+    parents = {}
+    for k, v in numbered("StackFrames").items():
+        m = re.search(r"file_location_id=(\d+) parent_frame_id=(\d+)", v)
+        parents[k] = (int(m.group(1)), int(m.group(2)) - 1)
+
+    def label(frame):
+        out = []
+        while frame in parents and len(out) < frames:
+            location, frame = parents[frame]
+            path, function, line = locations[location]
+            if "/jaxrb/" in path:
+                out.append(f"{path.rsplit('/jaxrb/', 1)[1]}:{function}:{line}")
+        return " < ".join(out)
+
+    return {m.group(1): label(int(m.group(2)))
+            for m in re.finditer(r"%([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo_text)}
+
+
 def kernel_counts(compiled, args, trace_dir: Path) -> collections.Counter:
     """Kernel events per HLO instruction name in one call of ``compiled``."""
     jax.block_until_ready(compiled(*args))
@@ -126,16 +169,26 @@ def attribute(counts, names, steps: int, depth: int) -> dict[str, float]:
     return {k: v / steps for k, v in groups.most_common()}
 
 
-def measure(scene: str, steps: int, depth: int) -> dict:
+def by_line(counts, lines, steps: int) -> dict[str, float]:
+    """Kernels per step, grouped by :func:`source_lines`."""
+    groups = collections.Counter()
+    for kernel, n in counts.items():
+        groups[lines.get(kernel) or "(no jaxrb frame) " + re.sub(r"[.\d]+$", "", kernel)] += n
+    return {k: v / steps for k, v in groups.most_common()}
+
+
+def measure(scene: str, steps: int, depth: int, frames: int = 1) -> dict:
     loss, params, state = scene_and_loss(scene, steps)
     record = {}
     for mode, fn in (("forward", loss), ("reverse", jax.grad(loss, argnums=(0, 1)))):
         compiled = jax.jit(fn).lower(params, state).compile()
         with tempfile.TemporaryDirectory(prefix=f"kernels_{mode}_") as trace_dir:
             counts = kernel_counts(compiled, (params, state), Path(trace_dir))
+        text = compiled.as_text()
         record[mode] = {
             "kernels_per_step": sum(counts.values()) / steps,
-            "by_source": attribute(counts, op_names(compiled.as_text()), steps, depth),
+            "by_source": attribute(counts, op_names(text), steps, depth),
+            "by_line": by_line(counts, source_lines(text, frames), steps),
         }
     record["ratio_reverse_over_forward"] = (record["reverse"]["kernels_per_step"]
                                             / record["forward"]["kernels_per_step"])
@@ -147,9 +200,10 @@ def print_table(scene: str, record: dict, top: int):
     print(f"\n{scene}: {f:.1f} kernels per step forward, {r:.1f} with the reverse pass "
           f"({record['ratio_reverse_over_forward']:.2f}x)")
     for mode in ("forward", "reverse"):
-        print(f"\n{mode}, kernels per step by source (first {top}):")
-        for key, n in list(record[mode]["by_source"].items())[:top]:
-            print(f"  {n:7.2f}  {key}")
+        for table in ("by_source", "by_line"):
+            print(f"\n{mode}, kernels per step {table.replace('_', ' ')} (first {top}):")
+            for key, n in list(record[mode][table].items())[:top]:
+                print(f"  {n:7.2f}  {key}")
 
 
 def main(argv=None):
@@ -157,6 +211,7 @@ def main(argv=None):
     p.add_argument("--scene", default="ball", choices=["ball", "stack", "free"])
     p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 10)")
     p.add_argument("--depth", type=int, default=10, help="op_name parts kept when grouping")
+    p.add_argument("--frames", type=int, default=1, help="source frames (inside jaxrb/) per by_line key")
     p.add_argument("--top", type=int, default=25)
     p.add_argument("--float32", action="store_true")
     p.add_argument("--quick", action="store_true", help="free body, 20 steps, temp output dir (CI smoke run)")
@@ -172,7 +227,7 @@ def main(argv=None):
     record = {
         **record_header("kernels.py", argv),
         "scene": args.scene, "steps": steps, "dtype": "float32" if args.float32 else "float64",
-        **measure(args.scene, steps, args.depth),
+        **measure(args.scene, steps, args.depth, args.frames),
     }
     print_table(args.scene, record, args.top)
     path = out / f"kernels_{args.scene}.json"

@@ -50,6 +50,12 @@ def test_kernel_count_benchmark_quick(tmp_path):
     assert reverse["kernels_per_step"] > forward["kernels_per_step"]
     assert any(key.startswith("T ") for key in reverse["by_source"])
     assert abs(sum(reverse["by_source"].values()) - reverse["kernels_per_step"]) < 1e-9
+    # The same kernels by the jaxrb source line that traced them: most have one, among them
+    # the splitting's axis rotations (SymplecticSplitting is the free body's integrator).
+    by_line = forward["by_line"]
+    assert abs(sum(by_line.values()) - forward["kernels_per_step"]) < 1e-9
+    assert sum(n for key, n in by_line.items() if key.startswith("(no jaxrb frame)")) < 0.25 * sum(by_line.values())
+    assert any(key.startswith("integrators/_splitting.py:_rotate_about_principal_axis:") for key in by_line)
 
 
 @pytest.mark.slow
