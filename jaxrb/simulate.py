@@ -65,6 +65,9 @@ class Step(eqx.Module):
 
     def advance(self, params: Params, state: State, derived) -> State:
         """One step, given ``derived = self.integrator.precompute(params)`` (see Integrator)."""
+        # Shapes only, so at trace time: params from another scene, or a field changed by
+        # Params.replace (which cannot validate), would otherwise broadcast silently.
+        self.scene.check_shapes(params)
         if self.scene.contact_pairs:
             new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
         elif derived is None:

@@ -71,7 +71,8 @@ class Params(eqx.Module):
     def replace(self, **changes) -> Params:
         """A copy with some fields changed, e.g. ``params.replace(mass=params.mass * 2)``.
 
-        Not validated (it works on traced values); use :meth:`jaxrb.Scene.check_params`.
+        Not validated here (it works on traced values): a step checks the shapes when it is
+        traced, and :meth:`jaxrb.Scene.check_params` checks the values.
         """
         return dataclasses.replace(self, **changes)
 

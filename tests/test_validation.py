@@ -1,5 +1,6 @@
 """Bad input fails early with a ValueError that says what is wrong and how to fix it."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -95,6 +96,30 @@ def test_params_from_another_scene_are_refused():
     two = scene_of(BALL, rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
     with pytest.raises(ValueError, match="this scene has 2"):
         two.state(scene_of(BALL).params(), angular_velocity=(1.0, 0.0, 0.0))
+
+
+def test_params_of_the_wrong_shape_are_refused_by_the_step():
+    """A step checks the params' shapes when it is traced: params from another scene, or a
+    field changed by Params.replace, used to broadcast silently (a mass of shape (2,) for
+    one ball ran as an ensemble of two)."""
+    one = scene_of(BALL)
+    two = scene_of(BALL, rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
+    step = rb.make_step(one, rb.integrators.RK4(), 1e-3)
+    params, state = one.params(), step.prepare(one.state())
+    with pytest.raises(ValueError, match=r"Params.mass has shape \(2,\); this scene needs \(1,\)"):
+        step(params.replace(mass=jnp.ones(2)), state)
+    with pytest.raises(ValueError, match=r"Params.mass has shape \(2,\)"):
+        rb.rollout(step, two.params(), state, 10)
+    with pytest.raises(ValueError, match=r"Params.gravity has shape \(\)"):
+        jax.jit(step)(params.replace(gravity=jnp.asarray(9.81)), state)
+    # Contact coefficients: one per contact pair.
+    ground = scene_of(BALL, ground=rb.Plane(), contacts="all")
+    contact_step = rb.make_step(ground, rb.integrators.SymplecticSplitting(), 1e-3)
+    contact_params = ground.params()
+    with pytest.raises(ValueError, match="one per contact pair"):
+        contact_step(contact_params.replace(friction=jnp.asarray([0.5, 0.5])),
+                     contact_step.prepare(ground.state(contact_params)))
+    step(params, state)  # the right shapes pass
 
 
 def test_traced_principal_moments_build_the_same_tensor():
