@@ -12,8 +12,9 @@ What it measures
     steps per second with one environment (``rollout`` over the scene, best of
     ``--repeats`` timed runs; ``timed_steps_1env`` steps, as many as the peers' calls,
     which are calibrated to 2 s and capped at the scene's length), and environment-steps
-    per second with ``--envs`` environments (``jax.vmap``, one timed call of
-    ``--batch-steps`` steps), each after a warm-up and ended by ``block_until_ready``.
+    per second with ``--envs`` environments (``jax.vmap``, best of ``--repeats`` timed
+    calls of ``--batch-steps`` steps; one call moved the stack's figure by 40% between two
+    runs an hour apart), each after a warm-up and ended by ``block_until_ready``.
     The stack runs from the initial stack as a chain of calls of ``--timing-steps`` steps,
     so its first call, where it settles, is also reported alone
     (``steps_per_s_1env_first_200``). The ball's timed call starts 5 steps before its
@@ -149,7 +150,7 @@ def run_jaxrb(name, make, settings, seconds, envs, repeats, timing_steps, batch_
         return rb.rollout(step, p, s, batch_steps, save_every=batch_steps)[0]
 
     vmapped = jax.jit(jax.vmap(short_batch))
-    many = envs * batch_steps / timed(vmapped, (batch(params), batch(timed_from)), 1)
+    many = envs * batch_steps / timed(vmapped, (batch(params), batch(timed_from)), repeats)
     return {"compile_s": compile_s, "steps_per_s_1env": one, f"env_steps_per_s_{envs}env": many,
             "timed_steps_1env": window, "timing_start_step": start, **settling, "finite": finite, **accuracy}
 
