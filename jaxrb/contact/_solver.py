@@ -17,8 +17,9 @@ one at a time, always with the current velocities, and keeps an *accumulated* im
 contact that it projects onto the friction cone: ``lambda_n >= 0`` and
 ``|lambda_t| <= mu lambda_n`` (the circular cone, not a pyramid). Contacts of one colour
 (see ``_layout``) share no body, so a whole colour is updated at once, exactly as if one
-after the other. The iteration count is fixed and the loops are ``lax.scan``: reverse
-mode crosses them.
+after the other. The sweep count is bounded, and every loop that reverse mode crosses is a
+``lax.scan``; the step's solve (:func:`solve`), whose derivative a custom rule gives, ends
+its sweeps in a ``lax.while_loop`` once they stop changing the impulses.
 
 Energy. Every single update is chosen so that it cannot add kinetic energy: an impulse
 ``dP`` changes it by ``u . dP + dP.K dP / 2``. A normal push is capped at ``2|u_n|/K_nn``
