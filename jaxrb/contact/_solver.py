@@ -216,7 +216,7 @@ def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
 
 def _gather(c: _Colour, twist):
     """The colour's pair twists ``(W, 12)`` from the global rows ``(N + 2, 6)``."""
-    return twist[c.rows].reshape(c.inv_k_nn.shape[0], 12)
+    return twist[c.rows].reshape(-1, 12)  # rows a_0, b_0, a_1, ...: each slot's 12 in a row
 
 
 def _scatter(c: _Colour, twist, end):
