@@ -92,19 +92,25 @@ class SymplecticSplitting(Integrator):
             )
 
     def precompute(self, params: Params):
-        """Principal moments ``(N, 3)`` (ascending) and principal-to-body quaternions ``(N, 4)``."""
+        """Inverse principal moments ``(N, 3)`` (1/(kg m^2), the moments in ascending order)
+        and principal-to-body quaternions ``(N, 4)``.
+
+        Inverted here, once per rollout: a step then multiplies. Divided in the step, reverse
+        mode recomputed the three quotients (and their derivatives) at every step, which XLA
+        did not hoist out of the backward loop: 3 kernels a step of the ball's gradient.
+        """
         moments, axes_matrix = jax.vmap(principal_axes)(params.inertia)
-        return moments, spatial.matrix_to_quat(axes_matrix)
+        return 1.0 / moments, spatial.matrix_to_quat(axes_matrix)
 
     def free_rotation(self, principal_frames, orientation, angular_momentum, dt: float):
         """Torque-free attitude flow over ``dt`` at constant world ``L``; ``(N, 4)``."""
         outer, middle, inner = self.axes
         flows = ((outer, 0.5), (middle, 0.5), (inner, 1.0), (middle, 0.5), (outer, 0.5))
 
-        def sub_rotations(moments, q, momentum):
+        def sub_rotations(inverse_moments, q, momentum):
             pose = jnp.concatenate([q, momentum])
             for k, fraction in flows:
-                pose = _rotate_about_principal_axis(pose, k, fraction * dt / moments[k])
+                pose = _rotate_about_principal_axis(pose, k, fraction * dt * inverse_moments[k])
                 # The barrier keeps each rotation its own kernel: fused into one, XLA:CPU
                 # recomputed the chain's shared terms exponentially (each extra rotation
                 # ~5x slower; the vmapped step 20x slower than RK4).
@@ -118,14 +124,14 @@ class SymplecticSplitting(Integrator):
         # faster, gradients 7-17% faster, and a single body's forward 12-18% slower.
         sub_rotations = jax.checkpoint(sub_rotations, prevent_cse=False)
 
-        def rotate(moments, principal, q, l_world):
+        def rotate(inverse_moments, principal, q, l_world):
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
-            q = sub_rotations(moments, q, spatial.quat_rotate_inverse(q, l_world))
+            q = sub_rotations(inverse_moments, q, spatial.quat_rotate_inverse(q, l_world))
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
             return spatial.quat_normalize(q)
 
-        moments, principal = principal_frames
-        return jax.vmap(rotate)(moments, principal, orientation, angular_momentum)
+        inverse_moments, principal = principal_frames
+        return jax.vmap(rotate)(inverse_moments, principal, orientation, angular_momentum)
 
     def step(self, scene, params: Params, state: State, dt: float, derived=None) -> State:
         principal_frames = self.precompute(params) if derived is None else derived
