@@ -372,8 +372,6 @@ def _branch_test(ctx: _Ctx, params: Params, state: State):
     end_sep = candidate = None
     if settings.time_of_impact:
         flight = _free_flight(ctx, frozen_params, frozen_state)
-        # Both ends (the free pose after 0 and after dt) by one batched evaluation: one copy
-        # of the separations in the compiled step, whose kernels each serve both poses.
         ends = jnp.stack([jnp.zeros((), dtype), jnp.asarray(dt, dtype)])
         both = jax.vmap(lambda t: _pair_gaps(ctx, _free_pose(frozen_params, frozen_state, *flight, t)))(ends)
         start_sep, end_sep = checkpoint_name(both, SEPARATIONS)
