@@ -1,7 +1,8 @@
 """Gradients through rollouts and impacts against closed forms and finite differences (float64).
 
-Also see ``test_contact.py`` (bounce gradients in reverse mode against finite differences,
-the two-ball swap Jacobian with the impact inside a step) and ``test_transforms.py``
+Also see ``test_contact.py`` (bounce gradients in forward mode against finite differences,
+the two-ball swap Jacobian with the impact inside a step, in both modes, with the time
+of impact's derivative) and ``test_transforms.py``
 (mass, inertia and initial-state gradients of smooth rollouts to 1e-6, checkpointing).
 """
 
@@ -120,9 +121,13 @@ def test_two_ball_collision_gradients_match_finite_differences():
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-9)
     # Closed form: v_b' = (1 + e) m_a v / (m_a + m_b); x_b(T) = 0.5 + v_b' (T - t_c).
     t_c, total = 0.8 / 2.1, 0.6
-    m_a, m_b, v = 1.0, 0.4, 2.1
+    m_a, m_b, v, e = 1.0, 0.4, 2.1, 0.9
     dxb_de = m_a * v / (m_a + m_b) * (total - t_c)
     np.testing.assert_allclose(jac[1, 2], dxb_de, rtol=1e-9)
+    # In v, the time of impact's derivative too: d t_c / dv = -t_c / v.
+    v_b = (1 + e) * m_a * v / (m_a + m_b)
+    dxb_dv = (1 + e) * m_a / (m_a + m_b) * (total - t_c) + v_b * t_c / v
+    np.testing.assert_allclose(jac[1, 3], dxb_dv, rtol=1e-9)
 
 
 def test_stack_gradients_match_finite_differences_where_the_sweeps_have_not_converged():

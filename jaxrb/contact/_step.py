@@ -30,8 +30,8 @@ free flight (constant acceleration and spin), the step is split at the first ins
 *at* contact), then the rest of the step. The instant is the root of the pair's signed
 separation along the free motion (the separating axes alone for box pairs, which have the
 same roots as the distance and cost a fraction of the manifold), bracketed by the two
-ends, found by a fixed number of Illinois (regula falsi) iterations and finished by one
-Newton step whose derivative is the implicit-function theorem's, ``d tau = -dD / D'``:
+ends, found by a fixed number of Illinois (regula falsi) iterations and a last secant step;
+its derivative is the implicit-function theorem's, ``d tau = -dD / D'`` (a custom JVP):
 gradients account for the time of impact. Other impacts in the same step are handled at
 its start.
 """
@@ -312,43 +312,75 @@ def _free_flight(ctx: _Ctx, params: Params, state: State):
 
 
 def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, start_gap, end_gap) -> jax.Array:
-    """Fraction ``tau`` in ``(0, 1]`` of the step at which a candidate pair first touches.
+    """Fraction ``tau`` in ``[0, 1]`` of the step at which a candidate pair first touches.
 
     ``flight`` is :func:`_free_flight` at ``state``. ``start_gap > 0`` and ``end_gap < 0``
     are the candidate pairs' smallest separations at ``tau = 0`` and ``tau = 1`` (already
-    known): they bracket the root. The separations are traced twice only (the root search's
-    body and the final Newton step), which keeps the compile time down.
+    known): they bracket the root. Its value comes from a fixed number of Illinois steps
+    and a last secant step through the bracket's true values, without tangents; its
+    derivative is the implicit function theorem's (:func:`_implicit_root`).
     """
     acceleration, omega = flight
-    big = jnp.asarray(jnp.finfo(state.position.dtype).max / 4, state.position.dtype)
+    dtype = state.position.dtype
+    big = float(jnp.finfo(dtype).max / 4)  # a Python float: ``distance`` must capture no tracer
 
-    def distance(tau):
+    def distance(tau, theta):
+        params, state, acceleration, omega, candidate = theta
         gaps = _pair_gaps(ctx, _free_pose(params, state, acceleration, omega, tau * ctx.dt))
         return jnp.min(jnp.where(candidate, gaps, big))
 
-    dtype = state.position.dtype
-    frozen = jax.lax.stop_gradient
+    theta = (params, state, acceleration, omega, candidate)
+    frozen_theta = jax.lax.stop_gradient(theta)
 
     def illinois(carry, _):
-        a, fa, b, fb, side = carry
+        # (a, b): the bracket; (fa, fb): the values the next secant uses (Illinois halves
+        # the stale one); (ta, tb): the true values at a and b.
+        a, fa, ta, b, fb, tb, side = carry
         c = jnp.clip((a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0), a, b)
-        fc = frozen(distance(c))
+        fc = distance(c, frozen_theta)
         left = fc * fa > 0  # root in [c, b]
-        a2, fa2 = jnp.where(left, c, a), jnp.where(left, fc, fa)
-        b2, fb2 = jnp.where(left, b, c), jnp.where(left, fb, fc)
+        a2, fa2, ta2 = jnp.where(left, c, a), jnp.where(left, fc, fa), jnp.where(left, fc, ta)
+        b2, fb2, tb2 = jnp.where(left, b, c), jnp.where(left, fb, fc), jnp.where(left, tb, fc)
         # Illinois: halve the stale end's value when the same side moves twice.
         fb2 = jnp.where(left & (side > 0), 0.5 * fb2, fb2)
         fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
-        return (a2, fa2, b2, fb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
+        return (a2, fa2, ta2, b2, fb2, tb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
 
     zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    start = (zero, frozen(start_gap).astype(dtype), one, frozen(end_gap).astype(dtype), jnp.zeros((), jnp.int32))
-    (a, fa, b, fb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
-    root = frozen(jnp.where(jnp.abs(fa) < jnp.abs(fb), a, b))
-    # One Newton step at the root: its value is the root, its derivative the implicit one.
-    value, slope = jax.jvp(distance, (root,), (jnp.ones_like(root),))
+    fa, fb = (jax.lax.stop_gradient(x).astype(dtype) for x in (start_gap, end_gap))
+    start = (zero, fa, fa, one, fb, fb, jnp.zeros((), jnp.int32))
+    (a, _, ta, b, _, tb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
+    # A last secant step through the true values at the bracket's ends (the bracket is tight
+    # by now; no more evaluations of the separations).
+    root = jnp.clip((a * tb - b * ta) / jnp.where(tb != ta, tb - ta, 1.0), a, b)
+    return jnp.clip(_implicit_root(distance, jax.lax.stop_gradient(root), theta), 0.0, 1.0)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _implicit_root(distance, root, theta):
+    """``root``, a root of ``distance(tau, theta)`` in ``tau``; its derivative is the implicit
+    function theorem's, ``d tau = -(d distance / d theta) d theta / (d distance / d tau)``.
+
+    As a rule of its own (not a Newton step ``root - distance / slope`` traced into the
+    step, as until 2026-11-27), a program that takes no derivative traces the separations
+    once, in the root search, and a derivative program does not differentiate the slope
+    again. Measured in alternating processes (float32 stack, float64 ball): the 5-box
+    stack's 200-step rollout 16,386 -> 14,663 lines of StableHLO and 11.1-11.9 -> 9.5-10.6 s
+    to trace and compile; the 1000-step ball's gradient 29.4 -> 28.0 s. The same values to
+    the last digit printed (the stack's top box, the ball's gradient).
+    """
+    return root
+
+
+@_implicit_root.defjvp
+def _implicit_root_jvp(distance, primals, tangents):
+    root, theta = primals
+    _, d_theta = tangents
+    _, slope = jax.jvp(lambda t: distance(t, theta), (root,), (jnp.ones_like(root),))
+    _, d_value = jax.jvp(lambda th: distance(root, th), (theta,), (d_theta,))
+    # The pair closes at the root (slope < 0); a degenerate (grazing) one gets a finite derivative.
     slope = jnp.where(slope < 0, slope, -1.0)
-    return jnp.clip(root - value / slope, 0.0, 1.0)
+    return root, -d_value / slope
 
 
 def _branch_test(ctx: _Ctx, params: Params, state: State):
