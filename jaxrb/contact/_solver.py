@@ -416,6 +416,7 @@ def solve(
     iterations: int,
     friction: bool = True,
     tolerance: float | None = None,
+    frozen_derivative: bool = True,
 ) -> tuple[Bodies, Float[Array, "c 3"]]:
     """Projected Gauss-Seidel on ``C`` slots, colour by colour, at most ``iterations`` sweeps.
 
@@ -432,12 +433,16 @@ def solve(
         friction: ``False`` solves the normal impulses only.
         tolerance: static; stop after the first sweep that changes no impulse by more than
             this times the largest. ``None``: run all ``iterations``.
+        frozen_derivative: static; ``True``: the derivative of converged sweeps is taken
+            with their Jacobian frozen at the solution (see :func:`_pgs_jvp`); ``False``:
+            always through every sweep run (for a few sweeps, where that is cheap).
 
     Returns:
         ``(bodies, lam)``: velocities after the impulses, and the accumulated impulses.
     """
     target, mu, active, lam = pad_slots(target, mu, active, lam0)
-    velocity, omega, lam, _ = _pgs(iterations, friction, tolerance, bodies, f, colours, target, mu, active, lam)
+    velocity, omega, lam, _ = _pgs(iterations, friction, tolerance, frozen_derivative, bodies, f, colours, target,
+                                   mu, active, lam)
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (velocity, omega))
     return bodies, lam[:-1]
 
@@ -463,16 +468,16 @@ def _pgs_sweeps(iterations: int, friction: bool, tolerance, early_exit: bool, bo
     return branch(jnp.any(active), run, idle, None)
 
 
-def _pgs(iterations: int, friction: bool, tolerance, *args):
+def _pgs(iterations: int, friction: bool, tolerance, frozen_derivative: bool, *args):
     """:func:`_pgs_sweeps`, ending at the tolerance; differentiated by :func:`_pgs_jvp`."""
     return _pgs_sweeps(iterations, friction, tolerance, True, *args)
 
 
-_pgs = jax.custom_jvp(_pgs, nondiff_argnums=(0, 1, 2))
+_pgs = jax.custom_jvp(_pgs, nondiff_argnums=(0, 1, 2, 3))
 
 
 @_pgs.defjvp
-def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
+def _pgs_jvp(iterations, friction, tolerance, frozen_derivative, primals, tangents):
     """The derivative of the sweeps: with their Jacobian frozen where they have converged,
     through every sweep where they have not.
 
@@ -488,7 +493,9 @@ def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
     ``benchmarks/gradients.py``). Otherwise (a stack whose sweeps have not converged, where
     freezing ``A`` was measured 0.2-0.5% off finite differences) the sweeps are
     differentiated one by one. The warm start's tangent ``d lam_0`` is carried in both
-    (``A^k d lam_0`` when frozen).
+    (``A^k d lam_0`` when frozen). With ``frozen_derivative=False`` (the split impulse's few
+    sweeps) always the latter, and the derivative program holds neither the frozen branch
+    nor the convergence test.
     """
     bodies, f, colours, target, mu, active, _ = primals
     d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
@@ -496,7 +503,7 @@ def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
     # instead of running the sweeps again in reverse mode. Packed into one (B + B + C + 2, 3)
     # array (the last row holds the sweep count): a rollout stacks each saved array every
     # step (one kernel each, and a cond zero-fills them every step its other branch is taken).
-    velocity, omega, lam, count = _pgs(iterations, friction, tolerance, *primals)
+    velocity, omega, lam, count = _pgs(iterations, friction, tolerance, frozen_derivative, *primals)
     rows = np.cumsum([velocity.shape[0], omega.shape[0], lam.shape[0]])
     count_row = jnp.zeros((1, 3), lam.dtype).at[0, 0].set(count)
     packed = checkpoint_name(jnp.concatenate([velocity, omega, lam, count_row]), SOLUTION)
@@ -529,6 +536,8 @@ def _pgs_jvp(iterations, friction, tolerance, primals, tangents):
         tol = jnp.sqrt(jnp.finfo(lam.dtype).eps) * jnp.max(jnp.abs(lam))
         return jnp.max(jnp.abs(sweep(lam, bodies, f, target, mu) - lam)) <= tol
 
+    if not frozen_derivative:
+        return (velocity, omega, lam, count), (*jax.checkpoint(unrolled)(None), jnp.zeros_like(count))
     # (The convergence test costs a sweep: not run in flight, nor when the sweeps stopped early.)
     any_active = jnp.any(active)
     settled = any_active & jax.lax.cond(any_active & (count >= iterations), converged,

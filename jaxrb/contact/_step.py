@@ -211,6 +211,11 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, unsolved_omega, momentum)
 
     # Split impulse: pseudo-velocities that remove penetration, used by the drift only.
+    # Its derivative goes through the (at most position_iterations) sweeps run, not the
+    # frozen Jacobian: the 1000-step ball's gradient compiled in 26.0-26.4 s instead of
+    # 28.4-29.4 s (alternating processes), with the same gradient to the last digit, and a
+    # 3-box stack's 100-step gradient (the correction active) within noise in compile and
+    # run time, with the same gradient to the last digit.
     depth = jnp.maximum(-gap - settings.penetration_slop, 0.0)
     push = contact.active & (depth > 0)
     still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
@@ -218,7 +223,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     pseudo, _ = solve(still, f, literal_array(layout.colours),
                       settings.position_correction * depth / h, jnp.zeros_like(mu), push,
                       jnp.zeros_like(lam0), settings.position_iterations, friction=False,
-                      tolerance=settings.tolerance_for(depth.dtype))
+                      tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)
     pseudo_momentum = _omega_to_momentum(params, state, pseudo.angular_velocity,
                                          still.angular_velocity, jnp.zeros_like(momentum))
 
@@ -366,7 +371,7 @@ def _implicit_root(distance, root, theta):
     once, in the root search, and a derivative program does not differentiate the slope
     again. Measured in alternating processes (float32 stack, float64 ball): the 5-box
     stack's 200-step rollout 16,386 -> 14,663 lines of StableHLO and 11.1-11.9 -> 9.5-10.6 s
-    to trace and compile; the 1000-step ball's gradient 29.4 -> 28.0 s. The same values to
+    to trace and compile; the 1000-step ball's gradient 29.4-29.6 -> 27.9-28.2 s. The same values to
     the last digit printed (the stack's top box, the ball's gradient).
     """
     return root
