@@ -358,17 +358,28 @@ def _speculative(step: Step, params: Params, derived, contact_steps, length: int
     # that prevent_cse adds does nothing but keep XLA from simplifying across it (the
     # ball's gradient: 88.3 -> 86.4 kernels a step).
     @functools.partial(jax.checkpoint, prevent_cse=False)
-    def free_advance(carry, _):
-        s, k = carry
+    def free_advance(s, k):
         passed = far(s)
-        s = free_step(scene, step.integrator, settings, dt, params, s, derived)
-        s = _timed(s, t0, k + 1, dt)
-        return (s, k + 1), ((s, passed) if record else passed)
+        # The free step zeroes the contact impulses (the next contact step's warm start).
+        # attempt zeroes them once, before the loop, and the loop carries them through:
+        # written at every step, the zeros were a kernel a step (and one in the reverse
+        # pass's recomputation), as XLA does not hoist a loop-carried constant.
+        s = dataclasses.replace(free_step(scene, step.integrator, settings, dt, params, s, derived),
+                                contact_impulse=s.contact_impulse)
+        s = _timed(s, t0, k, dt)
+        return s, ((dataclasses.replace(s, contact_impulse=None), passed) if record else passed)
 
     def attempt(carry):
-        end, out = jax.lax.scan(free_advance, carry, None, length=length)
+        s, k = carry
+        impulse = jnp.zeros_like(s.contact_impulse)
+        # The steps' counts are scanned over, not carried: a carried count was an add and a
+        # copy a step (XLA copies a loop-carried scalar that is read after its update).
+        end, out = jax.lax.scan(free_advance, dataclasses.replace(s, contact_impulse=impulse),
+                                k + jnp.arange(1, length + 1, dtype=k.dtype))
+        end = (end, k + length)
         if record:
             states, passed = out
+            states = dataclasses.replace(states, contact_impulse=jnp.broadcast_to(impulse, (length, *impulse.shape)))
             return jnp.all(passed), (end, states)
         return jnp.all(out), end
 

@@ -114,6 +114,39 @@ def test_safe_norm_gradient_is_per_element():
     np.testing.assert_allclose(spatial.quat_normalize(jnp.zeros(4)), [1, 0, 0, 0])
 
 
+def test_quat_normalize_has_the_projection_as_its_derivative():
+    """Its hand-written tangent against the derivative of ``q / |q|`` written plainly (jvp,
+    vjp, Hessian), against central differences, in float32, and at q = 0 (zero, finite)."""
+    q = jnp.asarray(RNG.normal(size=(6, 4)) * RNG.uniform(0.2, 3.0, size=(6, 1)))
+    q = q.at[0].set(random_quats(1)[0] * (1 + 1e-9))  # near the unit sphere, as in the integrators
+    plain = lambda q: q / jnp.linalg.norm(q, axis=-1, keepdims=True)  # noqa: E731
+    dq = jnp.asarray(RNG.normal(size=(6, 4)))
+    value, tangent = jax.jvp(spatial.quat_normalize, (q,), (dq,))
+    value_ref, tangent_ref = jax.jvp(plain, (q,), (dq,))
+    np.testing.assert_array_equal(value, spatial.quat_normalize(q))
+    np.testing.assert_allclose(value, value_ref, rtol=1e-15, atol=1e-16)
+    np.testing.assert_allclose(tangent, tangent_ref, rtol=1e-13, atol=1e-15)
+    weights = jnp.array([1.0, -2.0, 3.0, 0.5])
+    loss = lambda f: lambda q: jnp.sum(jnp.sin(f(q)) * jnp.broadcast_to(weights, q.shape))  # noqa: E731
+    np.testing.assert_allclose(jax.grad(loss(spatial.quat_normalize))(q), jax.grad(loss(plain))(q),
+                               rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(jax.hessian(loss(spatial.quat_normalize))(q[1:2]), jax.hessian(loss(plain))(q[1:2]),
+                               rtol=1e-12, atol=1e-14)
+    eps = 1e-6
+    for i in range(4):
+        e = jnp.zeros(4).at[i].set(eps)
+        fd = (spatial.quat_normalize(q[2] + e) - spatial.quat_normalize(q[2] - e)) / (2 * eps)
+        np.testing.assert_allclose(jax.jacfwd(spatial.quat_normalize)(q[2])[:, i], fd, rtol=1e-8, atol=1e-9)
+    # Float32 and vmapped, against the float64 derivative.
+    g32 = jax.vmap(jax.grad(loss(spatial.quat_normalize)))(q.astype(jnp.float32))
+    assert g32.dtype == jnp.float32
+    np.testing.assert_allclose(g32, jax.vmap(jax.grad(loss(plain)))(q), rtol=1e-5, atol=1e-5)
+    # At zero: the identity, with a zero (finite) derivative; a NaN stays NaN.
+    zero = jnp.zeros((2, 4))
+    np.testing.assert_array_equal(jax.grad(loss(spatial.quat_normalize))(zero), 0.0)
+    assert np.all(np.isnan(spatial.quat_normalize(jnp.full(4, jnp.nan))))
+
+
 def test_euler_angles_round_trip_and_order_matters():
     rpy = np.stack([RNG.uniform(-3, 3, 20), RNG.uniform(-1.5, 1.5, 20), RNG.uniform(-3, 3, 20)], 1)
     r = spatial.euler_to_matrix(rpy[:, 0], rpy[:, 1], rpy[:, 2])
