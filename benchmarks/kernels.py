@@ -16,6 +16,10 @@ What it measures
       h = 1 ms, dropped from 1 m clearance, ``SymplecticSplitting``), and its loss (the
       sum of the heights). Forward: the jitted rollout. Reverse: ``jax.grad`` with respect
       to all of ``Params`` and the initial ``State``.
+    * ``impact``: the same ball 4.5 steps above the ground, falling at 4.43 m/s (what it
+      reaches from 1 m), with the same spin and drift: of a 20-step rollout's two chunks of
+      10, the first fails its free-flight attempt and runs as contact steps, one of them
+      the impact. What one impact adds to the ball's counts (divide by 1000, not 20).
     * ``stack``: three boxes (half-extent 0.1 m, 1 kg, mu = 0.5) resting on the ground.
     * ``free``: a tumbling box under gravity, no contacts (compiles in seconds).
 
@@ -32,6 +36,7 @@ How to run (from the repository root)
     python benchmarks/kernels.py                  # the ball, 1000 steps
     python benchmarks/kernels.py --scene stack --depth 8   # 10 steps: the profiler records every PGS kernel
     python benchmarks/kernels.py --scene stack --frames 2  # which lines of jaxrb the kernels come from
+    python benchmarks/kernels.py --scene impact   # 20 steps through one impact
     python benchmarks/kernels.py --quick          # CI smoke run, temp dir
 
 It prints a table and writes ``kernels_<scene>.json`` to ``--out`` (default
@@ -63,11 +68,12 @@ WRAPPERS = ("ThunkExecutor", "cond", "while", "end:", "ThreadpoolListener")
 
 
 def scene_and_loss(name: str, steps: int):
-    if name == "ball":
+    if name in ("ball", "impact"):
         scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
         step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
         params = scene.params(restitution=0.8, friction=0.5)
-        state = scene.state(params, position=(0.0, 0.0, 1.1), velocity=(0.3, 0.0, 0.0),
+        height, fall = (1.1, 0.0) if name == "ball" else (0.1 + 4.5 * 4.43e-3, -4.43)
+        state = scene.state(params, position=(0.0, 0.0, height), velocity=(0.3, 0.0, fall),
                             angular_velocity=(0.0, 2.0, 0.0))
     elif name == "stack":
         bodies = [rb.Body(f"box{i}", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0) for i in range(3)]
@@ -81,7 +87,7 @@ def scene_and_loss(name: str, steps: int):
         params = scene.params()
         state = scene.state(params, velocity=(1.0, 0.0, 5.0), angular_velocity=(0.3, 4.0, 0.1))
     else:
-        raise ValueError(f"--scene must be 'ball', 'stack' or 'free', got {name!r}")
+        raise ValueError(f"--scene must be 'ball', 'impact', 'stack' or 'free', got {name!r}")
     state = step.prepare(state)
 
     def loss(p, s):
@@ -208,8 +214,8 @@ def print_table(scene: str, record: dict, top: int):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", default="ball", choices=["ball", "stack", "free"])
-    p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 10)")
+    p.add_argument("--scene", default="ball", choices=["ball", "impact", "stack", "free"])
+    p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 10, impact 20)")
     p.add_argument("--depth", type=int, default=10, help="op_name parts kept when grouping")
     p.add_argument("--frames", type=int, default=1, help="source frames (inside jaxrb/) per by_line key")
     p.add_argument("--top", type=int, default=25)
@@ -221,7 +227,7 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     if args.quick:
         args.scene, args.steps = "free", 20
-    steps = args.steps or (10 if args.scene == "stack" else 1000)
+    steps = args.steps or {"stack": 10, "impact": 20}.get(args.scene, 1000)
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {

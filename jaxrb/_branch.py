@@ -27,7 +27,8 @@ from jax.extend import core as jex_core
 __all__ = ["branch"]
 
 
-def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_reverse: bool = False):
+def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_reverse: bool = False,
+           saved=None):
     """``lax.cond(pred, true_fn, false_fn, *operands)``, which ``jax.vmap`` keeps a branch.
 
     Args:
@@ -37,6 +38,10 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         recompute_in_reverse: differentiate each branch inside a ``jax.checkpoint`` of its
             own. Reverse mode then keeps only the operands between the forward and the
             backward pass, instead of every residual of either branch (see ``_jvp``).
+        saved: with ``recompute_in_reverse``, the ``jax.checkpoint`` policy of those
+            checkpoints (``None``: save nothing). The contact step passes its named
+            quantities (solutions, separations, time of impact), so that no recomputation
+            runs a solve or a search again.
 
     Returns:
         The taken branch's output. Under ``jax.vmap`` with a batched ``pred``: the
@@ -104,7 +109,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         # its saved intermediates and the integer values it needs to that list: in the
         # bouncing ball's step, 42 slots, which the free branch filled with 35 copies at
         # every step of the backward pass. Here the whole linearisation of each branch is
-        # checkpointed, so its residuals are its operands and nothing else.
+        # checkpointed, so its residuals are its operands and nothing else (and what
+        # ``saved`` names).
         p, ops, consts = primals
         _, ops_dot, consts_dot = tangents
 
@@ -116,9 +122,17 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
                 # 0.10.2, XLA:CPU), though its program is 16% larger. Why is not known: XLA
                 # removes the dead branch, so the difference is in how it compiles the rest.
                 return jax.jvp(lambda o, c: evaluate(jnp.asarray(take), o, c), (o, c), (o_dot, c_dot))
-            return jax.checkpoint(run)
+            return jax.checkpoint(run, policy=saved)
 
-        return jax.lax.cond(p, linearised(True), linearised(False), ops, consts, ops_dot, consts_dot)
+        # The cond itself inside a checkpoint as well: its residuals are then the operands as
+        # they are, not the cond's outputs (a cond's partial evaluation returns even its
+        # operands as new values). In a loop, an operand that does not change (a sweep's
+        # frames and masses) is then kept once instead of stacked at every iteration: in the
+        # impact pass's eight sweeps, 14 arrays a sweep (``python benchmarks/kernels.py
+        # --scene impact``: with the impact pass recomputed, its reverse pass 300.1 -> 288.2
+        # kernels a step, the same gradient to the last bit).
+        return jax.checkpoint(lambda *a: jax.lax.cond(a[0], linearised(True), linearised(False), *a[1:]),
+                              policy=saved)(p, ops, consts, ops_dot, consts_dot)
 
     return differentiable(pred, tuple(operands), (tuple(true_jaxpr.consts), tuple(false_jaxpr.consts)))
 

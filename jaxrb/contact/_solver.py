@@ -47,14 +47,19 @@ SOLUTION = "jaxrb_contact_solution"
 #: The name of the contact pairs' signed separations at both ends of a step's free flight
 #: (``_step.contact_step``): they choose the step's branch and bracket the time of impact.
 SEPARATIONS = "jaxrb_contact_separations"
-#: The ``jax.checkpoint`` policy that keeps these two named quantities (and nothing else),
+#: The name of the time of impact's root (the search's result, a scalar): saved as well,
+#: no recomputation runs the search again. Without it, the impact step's reverse pass ran
+#: its 14 iterations twice more (``python benchmarks/kernels.py --scene impact``: 251.7 ->
+#: 232.4 kernels a step, with ``branch``'s checkpoints saving the names too).
+TIME_OF_IMPACT = "jaxrb_contact_time_of_impact"
+#: The ``jax.checkpoint`` policy that keeps these named quantities (and nothing else),
 #: so a rematerialised step runs neither the sweeps nor the test that chose its branch
 #: twice. Saving the solutions in the step's checkpoint was measured on a
 #: 3-box stack: 1050 ms against 1150 ms for the 200-step gradient (on the bouncing ball it
 #: made no difference). Saving the separations too (one ``(2, P)`` array a step): the
 #: 1000-step ball's reverse pass 237.5 -> 223.5 kernels a step, its gradient 11.37 ->
 #: 10.64 ms (minima of 40, side by side), the same gradient to the last bit.
-SAVE_NAMED = jax.checkpoint_policies.save_only_these_names(SOLUTION, SEPARATIONS)
+SAVE_NAMED = jax.checkpoint_policies.save_only_these_names(SOLUTION, SEPARATIONS, TIME_OF_IMPACT)
 
 __all__ = ["Bodies", "Frames", "frames", "solve", "sweeps", "pad_slots", "tangent_basis", "apply_impulses",
            "relative_velocity", "normal_velocities", "collisions"]
@@ -301,7 +306,7 @@ def _collision_update(c: _Colour, v, e, mu, eligible, threshold):
 
 
 def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int,
-                   tolerance: float | None = None, early_exit: bool = False):
+                   tolerance: float | None = None, early_exit: bool = False, recompute: bool = False):
     """At most ``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot
     arrays ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites.
 
@@ -313,7 +318,9 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     instead: reverse mode cannot cross it, so it serves only where the derivative is taken
     by other means (:func:`_pgs`'s rule). A settled 5-box stack runs one sweep of its 20 a
     step; each skipped one cost it a ``cond``, copies of its operands and the test, 133
-    kernels a step in all (benchmarks/README.md, "The stack's sweeps").
+    kernels a step in all (benchmarks/README.md, "The stack's sweeps"). With ``recompute``,
+    reverse mode keeps each sweep's input only (``branch``'s ``recompute_in_reverse``),
+    not the residuals of the sweep (zero-filled for a skipped one).
     Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
     idx = jnp.asarray(colours)
@@ -337,7 +344,8 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         if tolerance is None:
             return (*run(twist, values, c, data), count + 1, done), None
         # (An ensemble skips a sweep once all its members are done: see ``_branch``.)
-        twist, new = branch(done, lambda t, v, *_: (t, v), run, twist, values, c, data)
+        twist, new = branch(done, lambda t, v, *_: (t, v), run, twist, values, c, data,
+                            recompute_in_reverse=recompute)
         return (twist, new, count + jnp.where(done, 0, 1), done | converged(new, values)), None
 
     def next_sweep(carry):
@@ -375,8 +383,15 @@ def collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, i
         return v, total + impulse
 
     # A sweep with no collision changes nothing, so every later sweep would be the same:
-    # they are skipped (tolerance 0), exactly.
-    bodies, total, _ = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations, 0.0)
+    # they are skipped (tolerance 0), exactly. Recomputed in reverse mode: an impact
+    # usually needs one sweep of its eight, and stacking every sweep's residuals (59 arrays
+    # a sweep for the ball) was a third of the impact step's reverse pass. Measured with
+    # ``python benchmarks/kernels.py --scene impact``: its reverse pass 358.4 -> 300.1
+    # kernels a step. (The solver's sweeps gain nothing from it: a settled stack's
+    # derivative does not cross them, and the 3-box stack's reverse pass ran 2.6% more
+    # kernels with it.)
+    bodies, total, _ = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations, 0.0,
+                                      recompute=True)
     return bodies, total[:-1]
 
 

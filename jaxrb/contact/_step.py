@@ -55,7 +55,17 @@ from ..state import Params, State, angular_velocity, inverse_world_inertia, worl
 from ._layout import Layout, build_layout, detect, pair_separations, slot_values
 from ._lcp import solve_exact
 from ._settings import ContactSettings
-from ._solver import SAVE_NAMED, SEPARATIONS, Bodies, Frames, collisions, frames, normal_velocities, solve
+from ._solver import (
+    SAVE_NAMED,
+    SEPARATIONS,
+    TIME_OF_IMPACT,
+    Bodies,
+    Frames,
+    collisions,
+    frames,
+    normal_velocities,
+    solve,
+)
 
 __all__ = ["contact_step", "far_from_contact", "free_step", "layout_of", "free_scene_of", "initial_impulses",
            "resolve_impacts"]
@@ -220,10 +230,16 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     push = contact.active & (depth > 0)
     still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
                                 angular_velocity=jnp.zeros_like(bodies.angular_velocity))
-    pseudo, _ = solve(still, f, literal_array(layout.colours),
-                      settings.position_correction * depth / h, jnp.zeros_like(mu), push,
-                      jnp.zeros_like(lam0), settings.position_iterations, friction=False,
-                      tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)
+
+    def correct(still):
+        return solve(still, f, literal_array(layout.colours),
+                     settings.position_correction * depth / h, jnp.zeros_like(mu), push,
+                     jnp.zeros_like(lam0), settings.position_iterations, friction=False,
+                     tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)[0]
+
+    # Skipped where nothing is deeper than the slop (an impact from flight, most resting
+    # contacts): with no slot to push, the solve returns the bodies at rest, exactly.
+    pseudo = branch(jnp.any(push), correct, lambda b: b, still, recompute_in_reverse=True, saved=SAVE_NAMED)
     pseudo_momentum = _omega_to_momentum(params, state, pseudo.angular_velocity,
                                          still.angular_velocity, jnp.zeros_like(momentum))
 
@@ -247,10 +263,11 @@ def _drift_kick(ctx: _Ctx, params: Params, state: State, velocity, momentum, dri
     return _closing_kick(ctx.scene, params, drifted, 0.5 * h)
 
 
-def _free_step(ctx: _Ctx, params: Params, state: State, derived) -> State:
+def _free_step(ctx: _Ctx, params: Params, state: State, derived, h=None) -> State:
     """:func:`_regular` where no pair touches at the start and none closes during the
-    step: kick, drift, kick (Stoermer-Verlet), with the same arithmetic and no contact work."""
-    h = jnp.asarray(ctx.dt, state.position.dtype)
+    step: kick, drift, kick (Stoermer-Verlet), with the same arithmetic and no contact work.
+    ``h``: the length, s (default ``dt``; a traced one for a split step's first part)."""
+    h = jnp.asarray(ctx.dt if h is None else h, state.position.dtype)
     force, torque = wrench(ctx.scene, params, state)
     velocity = state.velocity + 0.5 * h * linear_acceleration(params, force)
     momentum = state.angular_momentum + 0.5 * h * torque
@@ -358,7 +375,8 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, 
     # A last secant step through the true values at the bracket's ends (the bracket is tight
     # by now; no more evaluations of the separations).
     root = jnp.clip((a * tb - b * ta) / jnp.where(tb != ta, tb - ta, 1.0), a, b)
-    return jnp.clip(_implicit_root(distance, jax.lax.stop_gradient(root), theta), 0.0, 1.0)
+    root = checkpoint_name(jax.lax.stop_gradient(root), TIME_OF_IMPACT)
+    return jnp.clip(_implicit_root(distance, root, theta), 0.0, 1.0)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -466,7 +484,7 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     # bouncing ball (benchmarks/gradients.py), the gradient ran ~10% faster side by side
     # (10.6 against 11.5 ms, minima of 40 rounds), with the same value to the last bit;
     # a 3-box stack's 100-step gradient, all contact steps, ~4% slower (391 against 376 ms).
-    return branch(far, free, contact, params, state, recompute_in_reverse=True)
+    return branch(far, free, contact, params, state, recompute_in_reverse=True, saved=SAVE_NAMED)
 
 
 def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, end_sep, candidate) -> State:
@@ -490,17 +508,34 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
     # Checkpointed branches (here and for the impacts): a cond's linearisation zero-fills the
     # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
-    search = jax.checkpoint(lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap))
+    search = jax.checkpoint(lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap),
+                            policy=SAVE_NAMED)
     tau = branch(any_hit, search, lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
+
+    # The part before the impact is free flight where no pair touches at the step's start:
+    # a pair apart there that does not close over the step (end separation >= 0) is one
+    # the free step would leave alone too, and the candidates close only at tau. Its
+    # speculative solve had nothing to do (the ball's gradient is the same to the last bit),
+    # and cost the impact step a solve and its derivative (``python benchmarks/kernels.py
+    # --scene impact``: 78.3 -> 73.0 kernels a step forward, 280.6 -> 251.7 in reverse).
+    clear = jnp.all(start_sep >= _touching_distance(ctx.settings, ctx.margin))
 
     def part(carry, inputs):
         state, lam = carry
         index, h = inputs
         bounce = (index == 1) | ~any_hit
+
+        def sub_step(s):
+            return branch(
+                (index == 0) & any_hit & clear,
+                jax.checkpoint(lambda s: _free_step(ctx, params, s, derived, h)),
+                lambda s: _rematerialised(ctx, params, s, h, lam, derived, bounce),
+                s, recompute_in_reverse=True, saved=SAVE_NAMED)
+
         state = branch(
             h > 0,
-            lambda s: _rematerialised(ctx, params, s, h, lam, derived, bounce),
+            sub_step,
             lambda s: dataclasses.replace(s, contact_impulse=lam),
             state)
         return (state, state.contact_impulse), None
