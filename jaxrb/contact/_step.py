@@ -527,11 +527,14 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
         bounce = (index == 1) | ~any_hit
 
         def sub_step(s):
+            # Both branches are checkpoints already. With ``recompute_in_reverse`` (each
+            # linearisation holds both branches) the ball's gradient was 69,068 lines of
+            # StableHLO instead of 45,715 (38,365 before this branch), for the same kernels.
             return branch(
                 (index == 0) & any_hit & clear,
                 jax.checkpoint(lambda s: _free_step(ctx, params, s, derived, h)),
                 lambda s: _rematerialised(ctx, params, s, h, lam, derived, bounce),
-                s, recompute_in_reverse=True, saved=SAVE_NAMED)
+                s)
 
         state = branch(
             h > 0,
