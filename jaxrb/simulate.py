@@ -56,12 +56,13 @@ class Step(eqx.Module):
 
     @eqx.filter_jit
     def __call__(self, params: Params, state: State) -> State:
-        advance = self.advance
-        if self.scene.contact_pairs:
-            # Reverse mode through a user's own loop of steps recomputes each contact step
-            # from its input state (and the solves' saved solutions) instead of storing the
-            # residuals of both branches of its lax.cond; rollout does the same per step.
-            advance = jax.checkpoint(advance, policy=SAVE_NAMED)
+        # Reverse mode through a user's own loop of steps recomputes each step from its
+        # input state (and, with contacts, the solves' saved solutions), as rollout's loop
+        # does, instead of stacking its intermediates: with contacts, the residuals of both
+        # branches of its lax.cond; without, those of the integrator (a tumbling box's
+        # 1000-step gradient through jax.lax.scan: 6.4 -> 4.6 ms, benchmarks/README.md,
+        # "One recomputation of the rotations").
+        advance = jax.checkpoint(self.advance, policy=SAVE_NAMED)
         return advance(params, state, self.integrator.precompute(params))
 
     def advance(self, params: Params, state: State, derived) -> State:

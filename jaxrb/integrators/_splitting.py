@@ -125,12 +125,14 @@ class SymplecticSplitting(Integrator):
                 pose = jax.lax.optimization_barrier(pose)
             return pose[:4]
 
-        # Unrolled (the axes are static, so each rotation moves two components only) and
-        # checkpointed (reverse mode stores the chain's input, not its ~100 intermediates,
-        # and recomputes them). Against the former checkpointed lax.scan over the five
-        # rotations, side by side (benchmarks/README.md): 4096 float32 bodies' forward 1.45x
-        # faster, gradients 7-17% faster, and a single body's forward 12-18% slower.
-        sub_rotations = jax.checkpoint(sub_rotations, prevent_cse=False)
+        # Unrolled: the axes are static, so each rotation moves two components only. Against
+        # the former lax.scan over the five rotations, side by side (benchmarks/README.md):
+        # 4096 float32 bodies' forward 1.45x faster, gradients 7-17% faster, and a single
+        # body's forward 12-18% slower. Not checkpointed here: every step that reaches it
+        # (rollout's, Step.__call__'s, the contact step's branches) is checkpointed as a
+        # whole, and a checkpoint inside that one made reverse mode run the chain twice,
+        # once in the step's recomputation (for the quotient's derivative after it) and
+        # again for its own (benchmarks/README.md, "One recomputation of the rotations").
 
         def rotate(inverse_moments, principal, q, l_world):
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
