@@ -477,6 +477,39 @@ def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     assert float(jnp.max(jnp.abs(outside))) > 1e-6  # linear damping: the heights depend on the mass
 
 
+@pytest.mark.parametrize("integrator", [rb.integrators.SymplecticSplitting(), rb.integrators.RK4()],
+                         ids=["SymplecticSplitting", "RK4"])
+def test_a_users_own_loop_of_steps_has_the_derivatives_of_rollout(integrator):
+    """``jax.lax.scan`` over ``step(params, state)`` (each call checkpointed, as rollout's
+    steps are) against rollout: the same gradient with respect to params and state, and
+    the same forward-mode derivative."""
+    scene = make_scene(num_bodies=1)
+    params, state = initial(scene)
+    step = rb.make_step(scene, integrator, 1e-2)
+    state = step.prepare(state)
+    steps = 30
+
+    def by_hand(p, s):
+        def body(s, _):
+            s = step(p, s)
+            return s, s
+        return jax.lax.scan(body, s, None, length=steps)
+
+    def loss(run):
+        def value(p, s):
+            final, trajectory = run(p, s)
+            return pose_loss(final) + jnp.sum(trajectory.orientation[:, 0, 1] ** 2)
+        return value
+
+    own, ref = loss(by_hand), loss(lambda p, s: rb.rollout(step, p, s, steps))
+    g = jax.jit(jax.grad(own, argnums=(0, 1)))(params, state)
+    g_ref = jax.jit(jax.grad(ref, argnums=(0, 1)))(params, state)
+    assert_trees_close(g, g_ref, rtol=1e-12, atol=1e-13)
+    assert float(jnp.max(jnp.abs(g_ref[0].inertia))) > 1e-3  # the loss depends on the attitude
+    d_inertia = jax.jit(jax.jacfwd(lambda i: own(params.replace(inertia=i), state)))(params.inertia)
+    np.testing.assert_allclose(d_inertia, g_ref[0].inertia, rtol=1e-11, atol=1e-13)
+
+
 def test_contact_rollouts_read_the_params_from_one_array():
     """With contacts, rollout's steps read the params (and the integrator's derived
     quantities) from one flat array (simulate._packed): it unpacks to the same leaves, is
