@@ -403,11 +403,13 @@ def _speculative(step: Step, params: Params, derived, contact_steps, length: int
 #: Bytes. XLA:CPU runs the kernels of a loop body one after another, in the calling
 #: thread, when no buffer they touch is larger than this (or when they form a chain, each
 #: needing the one before, or number at most 8); otherwise through its concurrent
-#: executor, whose bookkeeping (a heap-allocated state per iteration, an atomic counter
-#: per kernel, work offered to other threads) costs more than the tiny kernels of a small
-#: scene's step. A loop or ``cond`` counts the buffers of the bodies it holds, even a branch
-#: not taken. (``execute_sequential_buffer_threshold`` of XLA's CPU ``ThunkExecutor``:
-#: 512 in jaxlib 0.10.2, not settable. A wrong value here costs speed only, never a result.)
+#: executor. The chunked recording this sizes was measured faster (see
+#: :func:`_chunk_length`), but the executor's cost alone was not reproduced: a loop of 4
+#: or 30 tiny kernels ran in the same time with a 2,400-byte buffer or a 240-byte one
+#: (benchmarks/README.md, "One recomputation of the rotations"). A loop or ``cond``
+#: counts the buffers of the bodies it holds, even a branch not taken.
+#: (``execute_sequential_buffer_threshold`` of XLA's CPU ``ThunkExecutor``: 512 in jaxlib
+#: 0.10.2, not settable. A wrong value here costs speed only, never a result.)
 SEQUENTIAL_BUFFER_BYTES = 512
 #: The most steps one chunk of a recorded rollout stacks (see :func:`_chunk_length`).
 MAX_CHUNK = 16

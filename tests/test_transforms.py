@@ -111,6 +111,15 @@ def pose_loss(final):
     return jnp.sum(final.position * jnp.array([[0.3, -0.7, 1.1]])) + jnp.sum(r * jnp.arange(9.0).reshape(1, 3, 3))
 
 
+def trajectory_loss(run):
+    """``(params, state) -> scalar`` from ``run(params, state) -> (final, trajectory)``: the
+    final pose and the first body's attitude along the way."""
+    def value(p, s):
+        final, trajectory = run(p, s)
+        return pose_loss(final) + jnp.sum(trajectory.orientation[:, 0, 1] ** 2)
+    return value
+
+
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=IDS)
 def test_gradients_of_a_one_second_rollout_match_finite_differences(integrator):
     scene = make_scene(num_bodies=1)
@@ -441,14 +450,8 @@ def test_chunked_recording_has_the_derivatives_of_the_step_by_step_loop():
     steps = 40
     assert _chunk_length(state, steps) > 1
 
-    def loss(run):
-        def value(p, s):
-            final, trajectory = run(p, s)
-            return pose_loss(final) + jnp.sum(trajectory.orientation[:, 0, 1] ** 2)
-        return value
-
-    chunked = loss(lambda p, s: rb.rollout(step, p, s, steps))
-    by_step = loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
+    chunked = trajectory_loss(lambda p, s: rb.rollout(step, p, s, steps))
+    by_step = trajectory_loss(lambda p, s: _scan_steps(step, p, s, steps, 1, False, 1))
     g_ref = jax.jit(jax.grad(by_step, argnums=(0, 1)))(params, state)
     g = jax.jit(jax.grad(chunked, argnums=(0, 1)))(params, state)
     assert_trees_close(g, g_ref, rtol=1e-13, atol=1e-13)
@@ -495,13 +498,7 @@ def test_a_users_own_loop_of_steps_has_the_derivatives_of_rollout(integrator):
             return s, s
         return jax.lax.scan(body, s, None, length=steps)
 
-    def loss(run):
-        def value(p, s):
-            final, trajectory = run(p, s)
-            return pose_loss(final) + jnp.sum(trajectory.orientation[:, 0, 1] ** 2)
-        return value
-
-    own, ref = loss(by_hand), loss(lambda p, s: rb.rollout(step, p, s, steps))
+    own, ref = trajectory_loss(by_hand), trajectory_loss(lambda p, s: rb.rollout(step, p, s, steps))
     g = jax.jit(jax.grad(own, argnums=(0, 1)))(params, state)
     g_ref = jax.jit(jax.grad(ref, argnums=(0, 1)))(params, state)
     assert_trees_close(g, g_ref, rtol=1e-12, atol=1e-13)
