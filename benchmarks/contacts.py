@@ -219,6 +219,8 @@ def main(argv=None):
     p.add_argument("--x64", action="store_true")
     p.add_argument("--peer-python", default=None, help="interpreter with mujoco/mujoco-mjx/brax installed")
     p.add_argument("--no-peers", action="store_true")
+    p.add_argument("--no-exact", action="store_true",
+                   help="leave out the stack with the exact normal solve (a shorter run)")
     p.add_argument("--quick", action="store_true", help="tiny sizes, temp output dir (CI smoke run)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -239,9 +241,10 @@ def main(argv=None):
                       ("jaxrb exact", box_stack, rb.ContactSettings(solver="exact"), min(args.envs, 64))],
         "ball_drop": [("jaxrb pgs + time of impact", ball_drop, rb.ContactSettings(), args.envs)],
     }
-    if args.quick:
+    if args.quick or args.no_exact:
         # The CI smoke run keeps every code path of this script but compiles fewer programs:
-        # the exact solver's stack (its physics is tested in tests/test_contact.py) is left out.
+        # the exact solver's stack (its physics is tested in tests/test_contact.py) is left out,
+        # as it is with --no-exact.
         cases["box_stack"] = cases["box_stack"][:1]
     results = {}
     for scene, runs in cases.items():
@@ -251,6 +254,7 @@ def main(argv=None):
             results[scene][engine] = run_jaxrb(scene, make, settings, seconds[scene], envs,
                                                args.repeats, args.timing_steps, args.batch_steps, dtype)
     if not args.no_peers:
+        print("running the peers ...", flush=True)
         peers = run_peers(args.peer_python, args.quick)
         for key, value in peers.items():
             scene = "box_stack" if "stack" in key else "ball_drop" if ("ball" in key or "drop" in key) else None

@@ -60,10 +60,17 @@ HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
 
 
-def compiled(fn, *args):
+def progress(message: str) -> None:
+    """One line on stderr as the run goes (a run takes minutes; on a GPU, longer)."""
+    print(f"[gradients.py {time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+
+
+def compiled(fn, *args, name: str = "a program"):
     t0 = time.perf_counter()
     exe = jax.jit(fn).lower(*args).compile()
-    return exe, time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    progress(f"compiled {name} in {seconds:.1f} s")
+    return exe, seconds
 
 
 def memory_bytes(exe) -> int | None:
@@ -111,9 +118,9 @@ def bounce(steps, repeats, dtype):
         return loss(params.replace(restitution=x[:1], friction=x[1:2], mass=x[2:3]), state)
 
     x = jnp.asarray([0.8, 0.5, 1.0], dtype)
-    forward, c_fwd = compiled(loss, params, state)
-    reverse, c_rev = compiled(jax.grad(loss, argnums=(0, 1)), params, state)
-    jacfwd, c_jf = compiled(jax.jacfwd(coefficients), x)
+    forward, c_fwd = compiled(loss, params, state, name="the ball's forward rollout")
+    reverse, c_rev = compiled(jax.grad(loss, argnums=(0, 1)), params, state, name="its gradient")
+    jacfwd, c_jf = compiled(jax.jacfwd(coefficients), x, name="its forward-mode Jacobian")
 
     # The cost split: flight only, in this program and in one without contacts.
     fall = 0.5 * 9.81 * (steps * 1e-3) ** 2
@@ -151,6 +158,7 @@ def bounce(steps, repeats, dtype):
         for f in ("position", "velocity", "orientation", "angular_momentum"))
 
     rounds = max(repeats, BOUNCE_ROUNDS)
+    progress(f"timing the bouncing ball: {rounds} interleaved rounds, then the split")
     times = interleaved({"forward": (forward, (params, state)), "reverse": (reverse, (params, state)),
                          "jacfwd": (jacfwd, (x,))}, rounds)
     # The split in rounds of its own (the headline ratio's rounds stay as they were),
@@ -323,8 +331,10 @@ def main(argv=None):
         "dtype": str(jnp.dtype(dtype)),
     }
     record["bounce"] = bounce(args.steps, args.repeats, dtype)
+    progress(f"the free body's {args.long_steps}-step gradient, in a fresh process")
     record["free_body_long"] = long_in_fresh_process(args)
     if args.peer_python:
+        progress("the peers, in their interpreter")
         record["peers"] = run_peers(args.peer_python, args.steps, args.repeats)
     print_table(record)
     (out / "gradients.json").write_text(json.dumps(record, indent=2, default=str) + "\n")

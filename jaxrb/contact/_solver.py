@@ -182,22 +182,26 @@ def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
 class _Colour(eqx.Module):
     """The slots of the colours, gathered once per solve: leading axes ``(K, W)`` (one colour
     of ``W`` slots per row). A sweep then scans over these rows, so the loop body reads its
-    slots' data as a slice instead of gathering it by index on every visit, with the
-    quantities that do not change between sweeps (reciprocals of the Delassus block's
-    normal entry and of its largest tangential eigenvalue) computed once.
+    slots' data as a slice instead of gathering it by index on every visit, with what does
+    not change between sweeps computed once: each slot's velocity map and impulse response
+    (below), and the reciprocals of its Delassus block's normal entry and of its largest
+    tangential eigenvalue.
 
     A slot's *pair twist* is ``(v_a, w_a, v_b, w_b)`` ``(12,)``, the twists of its two
-    bodies; ``rows`` ``(K, 2W)`` lists the body rows ``a_0, b_0, a_1, b_1, ...``, so that a
-    colour's pair twists are one gather (and one scatter back)."""
+    bodies (world frame); ``rows`` ``(K, 2W)`` lists the body rows ``a_0, b_0, a_1, b_1,
+    ...``, so that a colour's pair twists are one gather (and one scatter back).
+
+    Attributes:
+        jac: ``(K, W, 3, 12)``, pair twist -> relative velocity ``u`` in the slot's
+            ``(n, t1, t2)`` basis: ``B [E, -[r_a]x, -E, [r_b]x]`` (``B``: the basis rows).
+        response: ``(K, W, 12, 3)``, impulse in that basis (N s) -> change of the pair twist:
+            ``[E/M_a; I_a^-1 [r_a]x; -E/M_b; -I_b^-1 [r_b]x] B^T``. (``jac @ response`` is
+            the Delassus block.)
+    """
 
     rows: Array
-    inv_mass_a: Array
-    inv_mass_b: Array
-    inv_inertia_a: Array
-    inv_inertia_b: Array
-    r_a: Array
-    r_b: Array
-    basis: Array
+    jac: Array
+    response: Array
     inv_k_nn: Array
     k_tn: Array
     inv_k_max: Array
@@ -213,41 +217,33 @@ def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
     idx = jnp.asarray(colours)
     a, b = f.body_a[idx], f.body_b[idx]
     delassus = f.delassus[idx]
-    return _Colour(jnp.stack([a, b], -1).reshape(a.shape[0], -1),
-                   bodies.inv_mass[a], bodies.inv_mass[b], bodies.inv_inertia[a], bodies.inv_inertia[b],
-                   f.r_a[idx], f.r_b[idx], f.basis[idx], _safe_reciprocal(delassus[..., 0, 0]),
-                   delassus[..., 1:, 0], _safe_reciprocal(_largest_tangential_eigenvalue(delassus)))
-
-
-def _gather(c: _Colour, twist):
-    """The colour's pair twists ``(W, 12)`` from the global rows ``(N + 2, 6)``."""
-    return twist[c.rows].reshape(-1, 12)  # rows a_0, b_0, a_1, ...: each slot's 12 in a row
-
-
-def _scatter(c: _Colour, twist, end):
-    """Write the colour's new pair twists ``(W, 12)`` into the global rows ``(N + 2, 6)``.
-
-    No two slots of a colour share a dynamic body, so each dynamic row is written once; the
-    static rows (ground, padding) may be written by several slots, all with their unchanged
-    value (zero inverse mass). Writing values, not adding differences, keeps float32 from
-    rounding each update twice (``v + ((v + dv) - v)``).
-    """
-    return twist.at[c.rows].set(end.reshape(-1, 6))
+    basis = f.basis[idx]
+    basis_t = spatial.transpose(basis)
+    skew_a, skew_b = spatial.skew(f.r_a[idx]), spatial.skew(f.r_b[idx])
+    # u = B ((v_a + w_a x r_a) - (v_b + w_b x r_b)), with w x r = -[r]x w.
+    jac = jnp.concatenate([basis, -spatial.matmul(basis, skew_a), -basis, spatial.matmul(basis, skew_b)], -1)
+    # P = B^T p acts as +P at A and -P at B: dv = P/M, dw = I^-1 (r x P).
+    response = jnp.concatenate([
+        bodies.inv_mass[a][..., None, None] * basis_t,
+        spatial.matmul(bodies.inv_inertia[a], spatial.matmul(skew_a, basis_t)),
+        -bodies.inv_mass[b][..., None, None] * basis_t,
+        -spatial.matmul(bodies.inv_inertia[b], spatial.matmul(skew_b, basis_t))], -2)
+    return _Colour(jnp.stack([a, b], -1).reshape(a.shape[0], -1), jac, response,
+                   _safe_reciprocal(delassus[..., 0, 0]), delassus[..., 1:, 0],
+                   _safe_reciprocal(_largest_tangential_eigenvalue(delassus)))
 
 
 def _local_velocity(c: _Colour, pair):
-    """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis."""
-    ua = pair[:, 0:3] + spatial.cross(pair[:, 3:6], c.r_a)
-    ub = pair[:, 6:9] + spatial.cross(pair[:, 9:12], c.r_b)
-    return spatial.matvec(c.basis, ua - ub)
+    """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis, from the pair
+    twists ``(W, 12)``."""
+    return jnp.sum(c.jac * pair[:, None, :], -1)
 
 
 def _local_apply(c: _Colour, pair, local_impulse):
-    """``+P`` on A and ``-P`` on B, ``P`` given in the slot basis ``(W, 3)``."""
-    impulse = spatial.matvec(spatial.transpose(c.basis), local_impulse)
-    return pair + jnp.concatenate([
-        c.inv_mass_a[:, None] * impulse, spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse)),
-        -c.inv_mass_b[:, None] * impulse, -spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse))], -1)
+    """The pair twists ``(W, 12)`` after ``+P`` on A and ``-P`` on B, ``P`` given in the slot
+    basis ``(W, 3)``."""
+    r, p = c.response, local_impulse
+    return pair + (r[..., 0] * p[:, None, 0] + r[..., 1] * p[:, None, 1] + r[..., 2] * p[:, None, 2])
 
 
 def _friction_step(c: _Colour, u_t, old_t, radius, on):
@@ -259,8 +255,11 @@ def _friction_step(c: _Colour, u_t, old_t, radius, on):
     ``u_t`` ``(W, 2)`` is the tangential slip. Returns the change of the tangential impulse
     ``(W, 2)``."""
     wanted = old_t - u_t * c.inv_k_max[:, None]
-    norm = spatial.safe_norm(wanted)
-    scale = jnp.where(norm > radius, radius / jnp.where(norm > 0, norm, 1.0), 1.0)
+    # Projected onto the disk by one reciprocal square root (its derivative finite at 0):
+    # with a norm and a quotient, each was a kernel of its own in every colour's step.
+    squared = wanted[:, 0] * wanted[:, 0] + wanted[:, 1] * wanted[:, 1]
+    outside = squared > radius * radius
+    scale = jnp.where(outside, radius * jax.lax.rsqrt(jnp.where(outside, squared, 1.0)), 1.0)
     return jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
 
 
@@ -327,14 +326,31 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     c = _by_colour(bodies, f, colours)
     data = jax.tree.map(lambda x: x[idx], slot_data)
 
-    def colour_step(carry, inputs):
-        twist = carry
-        c_k, data_k, mine = inputs
-        end, mine = update(c_k, _gather(c_k, twist), mine, *data_k)
-        return _scatter(c_k, twist, end), mine
+    # The sweeps' state is one array: the bodies' twists (rows 0 .. N + 1) and below them the
+    # slots' values, colour by colour (colour k's at rows N + 2 + kW ..., zero-padded from 3
+    # to 6 columns). A colour's step is then one gather of its bodies' and slots' rows and
+    # one scatter back. No two slots of a colour share a dynamic body, so each dynamic row
+    # is written once; the static rows (ground, padding) may be written by several slots,
+    # all with their unchanged value (zero inverse mass), and the padding slots' values
+    # stay zero. Writing values, not adding differences, keeps float32 from rounding each
+    # update twice (``v + ((v + dv) - v)``).
+    n_rows = bodies.velocity.shape[0]
+    num_colours, width = idx.shape
+    value_rows = n_rows + jnp.arange(num_colours * width, dtype=jnp.int32).reshape(num_colours, width)
+    rows = jnp.concatenate([c.rows, value_rows], -1)  # (K, 3W)
+
+    def colour_step(state, inputs):
+        c_k, data_k, rows_k = inputs
+        gathered = state[rows_k]
+        pair, mine = gathered[: 2 * width].reshape(width, 12), gathered[2 * width:, :3]
+        end, mine = update(c_k, pair, mine, *data_k)
+        written = jnp.concatenate([end.reshape(2 * width, 6), jnp.pad(mine, ((0, 0), (0, 3)))])
+        return state.at[rows_k].set(written), None
 
     def run(twist, values, c, data):
-        return jax.lax.scan(colour_step, twist, (c, data, values))
+        state = jnp.concatenate([twist, jnp.pad(values.reshape(-1, 3), ((0, 0), (0, 3)))])
+        state, _ = jax.lax.scan(colour_step, state, (c, data, rows))
+        return state[:n_rows], state[n_rows:, :3].reshape(values.shape)
 
     def converged(new, values):
         return jnp.max(jnp.abs(new - values)) <= tolerance * jnp.max(jnp.abs(new))
