@@ -305,8 +305,7 @@ def _collision_update(c: _Colour, v, e, mu, eligible, threshold):
 
 
 def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int,
-                   tolerance: float | None = None, early_exit: bool = False, recompute: bool = False,
-                   live=None):
+                   tolerance: float | None = None, early_exit: bool = False, recompute: bool = False):
     """At most ``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot
     arrays ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites.
 
@@ -321,13 +320,6 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     kernels a step in all (benchmarks/README.md, "The stack's sweeps"). With ``recompute``,
     reverse mode keeps each sweep's input only (``branch``'s ``recompute_in_reverse``),
     not the residuals of the sweep (zero-filled for a skipped one).
-
-    ``live`` ``(C + 1,)`` bool, with ``early_exit``: the slots whose update can change
-    anything (for the PGS, the active ones, given zero impulses on the inactive ones, as
-    :func:`pad_slots` makes them: such a slot's impulse stays zero). The while loop's
-    sweeps then visit only the colours with a live slot, in their order, which gives the
-    same values exactly. The settled 5-box stack of ``benchmarks/contacts.py`` has 16 such
-    colours of its 20; eight boxes in a row on the ground, all pairs declared, 4 of 32.
     Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
     idx = jnp.asarray(colours)
@@ -360,23 +352,6 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         state, _ = jax.lax.scan(colour_step, state, (c, data, rows))
         return state[:n_rows], state[n_rows:, :3].reshape(values.shape)
 
-    if live is not None and early_exit:
-        # The colours with a live slot first, in their order (a stable sort), then the rest.
-        colour_live = jnp.any(live[idx], axis=1)
-        num_live = jnp.sum(colour_live.astype(jnp.int32))
-        live_first = jax.tree.map(lambda x: x[jnp.argsort(~colour_live, stable=True)], (c, data, rows))
-
-    def run_live(twist, values):
-        """``run`` over the live colours alone (a while loop: not differentiable)."""
-        state = jnp.concatenate([twist, jnp.pad(values.reshape(-1, 3), ((0, 0), (0, 3)))])
-
-        def body(carry):
-            k, state = carry
-            return k + 1, colour_step(state, jax.tree.map(lambda x: x[k], live_first))[0]
-
-        _, state = jax.lax.while_loop(lambda x: x[0] < num_live, body, (jnp.zeros((), jnp.int32), state))
-        return state[:n_rows], state[n_rows:, :3].reshape(values.shape)
-
     def converged(new, values):
         return jnp.max(jnp.abs(new - values)) <= tolerance * jnp.max(jnp.abs(new))
 
@@ -391,7 +366,7 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
 
     def next_sweep(carry):
         twist, values, count, _ = carry
-        twist, new = run(twist, values, c, data) if live is None else run_live(twist, values)
+        twist, new = run(twist, values, c, data)
         return twist, new, count + 1, converged(new, values)
 
     twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)
@@ -458,8 +433,7 @@ def sweeps(bodies: Bodies, f: Frames, colours, target, mu, active, lam, iteratio
     def update(c, v, lam, target, mu, on):
         return _update(c, v, lam, target, mu, on, friction)
 
-    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations, tolerance, early_exit,
-                          live=active)
+    return _colour_sweeps(bodies, f, colours, (target, mu, active), lam, update, iterations, tolerance, early_exit)
 
 
 def solve(
