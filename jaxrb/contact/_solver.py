@@ -182,26 +182,22 @@ def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
 class _Colour(eqx.Module):
     """The slots of the colours, gathered once per solve: leading axes ``(K, W)`` (one colour
     of ``W`` slots per row). A sweep then scans over these rows, so the loop body reads its
-    slots' data as a slice instead of gathering it by index on every visit, with what does
-    not change between sweeps computed once: each slot's velocity map and impulse response
-    (below), and the reciprocals of its Delassus block's normal entry and of its largest
-    tangential eigenvalue.
+    slots' data as a slice instead of gathering it by index on every visit, with the
+    quantities that do not change between sweeps (reciprocals of the Delassus block's
+    normal entry and of its largest tangential eigenvalue) computed once.
 
     A slot's *pair twist* is ``(v_a, w_a, v_b, w_b)`` ``(12,)``, the twists of its two
-    bodies (world frame); ``rows`` ``(K, 2W)`` lists the body rows ``a_0, b_0, a_1, b_1,
-    ...``, so that a colour's pair twists are one gather (and one scatter back).
-
-    Attributes:
-        jac: ``(K, W, 3, 12)``, pair twist -> relative velocity ``u`` in the slot's
-            ``(n, t1, t2)`` basis: ``B [E, -[r_a]x, -E, [r_b]x]`` (``B``: the basis rows).
-        response: ``(K, W, 12, 3)``, impulse in that basis (N s) -> change of the pair twist:
-            ``[E/M_a; I_a^-1 [r_a]x; -E/M_b; -I_b^-1 [r_b]x] B^T``. (``jac @ response`` is
-            the Delassus block.)
-    """
+    bodies; ``rows`` ``(K, 2W)`` lists the body rows ``a_0, b_0, a_1, b_1, ...``, so that a
+    colour's pair twists are one gather (and one scatter back)."""
 
     rows: Array
-    jac: Array
-    response: Array
+    inv_mass_a: Array
+    inv_mass_b: Array
+    inv_inertia_a: Array
+    inv_inertia_b: Array
+    r_a: Array
+    r_b: Array
+    basis: Array
     inv_k_nn: Array
     k_tn: Array
     inv_k_max: Array
@@ -217,33 +213,25 @@ def _by_colour(bodies: Bodies, f: Frames, colours) -> _Colour:
     idx = jnp.asarray(colours)
     a, b = f.body_a[idx], f.body_b[idx]
     delassus = f.delassus[idx]
-    basis = f.basis[idx]
-    basis_t = spatial.transpose(basis)
-    skew_a, skew_b = spatial.skew(f.r_a[idx]), spatial.skew(f.r_b[idx])
-    # u = B ((v_a + w_a x r_a) - (v_b + w_b x r_b)), with w x r = -[r]x w.
-    jac = jnp.concatenate([basis, -spatial.matmul(basis, skew_a), -basis, spatial.matmul(basis, skew_b)], -1)
-    # P = B^T p acts as +P at A and -P at B: dv = P/M, dw = I^-1 (r x P).
-    response = jnp.concatenate([
-        bodies.inv_mass[a][..., None, None] * basis_t,
-        spatial.matmul(bodies.inv_inertia[a], spatial.matmul(skew_a, basis_t)),
-        -bodies.inv_mass[b][..., None, None] * basis_t,
-        -spatial.matmul(bodies.inv_inertia[b], spatial.matmul(skew_b, basis_t))], -2)
-    return _Colour(jnp.stack([a, b], -1).reshape(a.shape[0], -1), jac, response,
-                   _safe_reciprocal(delassus[..., 0, 0]), delassus[..., 1:, 0],
-                   _safe_reciprocal(_largest_tangential_eigenvalue(delassus)))
+    return _Colour(jnp.stack([a, b], -1).reshape(a.shape[0], -1),
+                   bodies.inv_mass[a], bodies.inv_mass[b], bodies.inv_inertia[a], bodies.inv_inertia[b],
+                   f.r_a[idx], f.r_b[idx], f.basis[idx], _safe_reciprocal(delassus[..., 0, 0]),
+                   delassus[..., 1:, 0], _safe_reciprocal(_largest_tangential_eigenvalue(delassus)))
 
 
 def _local_velocity(c: _Colour, pair):
-    """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis, from the pair
-    twists ``(W, 12)``."""
-    return jnp.sum(c.jac * pair[:, None, :], -1)
+    """Relative velocity ``(W, 3)`` in each slot's ``(n, t1, t2)`` basis."""
+    ua = pair[:, 0:3] + spatial.cross(pair[:, 3:6], c.r_a)
+    ub = pair[:, 6:9] + spatial.cross(pair[:, 9:12], c.r_b)
+    return spatial.matvec(c.basis, ua - ub)
 
 
 def _local_apply(c: _Colour, pair, local_impulse):
-    """The pair twists ``(W, 12)`` after ``+P`` on A and ``-P`` on B, ``P`` given in the slot
-    basis ``(W, 3)``."""
-    r, p = c.response, local_impulse
-    return pair + (r[..., 0] * p[:, None, 0] + r[..., 1] * p[:, None, 1] + r[..., 2] * p[:, None, 2])
+    """``+P`` on A and ``-P`` on B, ``P`` given in the slot basis ``(W, 3)``."""
+    impulse = spatial.matvec(spatial.transpose(c.basis), local_impulse)
+    return pair + jnp.concatenate([
+        c.inv_mass_a[:, None] * impulse, spatial.matvec(c.inv_inertia_a, spatial.cross(c.r_a, impulse)),
+        -c.inv_mass_b[:, None] * impulse, -spatial.matvec(c.inv_inertia_b, spatial.cross(c.r_b, impulse))], -1)
 
 
 def _friction_step(c: _Colour, u_t, old_t, radius, on):
