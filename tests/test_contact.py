@@ -372,6 +372,7 @@ def two_balls(gap, v=1.0):
     return scene, params, state
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("gap", [0.0, 0.0037])
 def test_two_equal_balls_exchange_velocities(gap):
     """Elastic, head-on, equal masses: velocities swap exactly, touching now or mid-step, and
@@ -721,6 +722,7 @@ def test_degenerate_contacts_give_finite_values_and_gradients():
         assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree.leaves(grads))
 
 
+@pytest.mark.slow
 def test_bouncing_ball_gradients_match_finite_differences():
     """1 s with two impacts, spin and friction: d(final state)/d(e, mass, mu, initial state)."""
     scene = ball_scene()
@@ -782,6 +784,7 @@ def test_diffrax_event_path_locates_impacts_to_solver_tolerance():
             [rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)]).params(), state, 1.0)
 
 
+@pytest.mark.slow
 def test_friction_scenes_in_float32():
     """Sliding box, 25/30 degree inclines and rolling sphere, float32: the same bounds as float64."""
     scene = rb.Scene([rb.Body("box", shape=BOX, mass=1.0)], ground=rb.Plane(), contacts="all")

@@ -185,6 +185,7 @@ def test_branch_joins_weak_types_and_refuses_mismatched_branches():
         branch(jnp.asarray(True), lambda x: (x, x), lambda x: x, x)
 
 
+@pytest.mark.slow
 def test_contact_ensemble_equals_its_members_run_one_by_one():
     """A vmapped rollout (bouncing balls at different heights, some in flight and some in
     contact at each step, and a box stack with different frictions) equals each member's

@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxrb as rb
 
@@ -76,6 +77,7 @@ def test_gravity_force_and_damping_gradients_match_finite_differences():
     assert np.all(np.max(np.abs(fd), axis=0) > 1e-3)  # every parameter matters
 
 
+@pytest.mark.slow
 def test_friction_gradients_across_contact_match_finite_differences():
     """A box sliding to rest: d(x)/d(mu, v0) while sliding and at rest, against central differences.
 
@@ -102,6 +104,7 @@ def test_friction_gradients_across_contact_match_finite_differences():
     np.testing.assert_allclose(jac[0], [-9.0 / (2 * 0.16 * G), 3.0 / (0.4 * G)], rtol=0.03)
 
 
+@pytest.mark.slow
 def test_two_ball_collision_gradients_match_finite_differences():
     """Masses, restitution and approach speed through a collision that falls inside a step."""
     scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)],
@@ -130,6 +133,7 @@ def test_two_ball_collision_gradients_match_finite_differences():
     np.testing.assert_allclose(jac[1, 3], dxb_dv, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_stack_gradients_match_finite_differences_where_the_sweeps_have_not_converged():
     """A box pushed across another one, whose 20 PGS sweeps do not converge (the lower box
     creeps 3.5e-5 m): the solver's derivative must still be the derivative of what it

@@ -156,6 +156,7 @@ def test_restitution_from_bounce_heights_with_adam(example):
         result.identifiability()  # an optax fit keeps no Jacobian
 
 
+@pytest.mark.slow
 def test_restitution_from_bounce_heights_with_levenberg_marquardt(bounce):
     scene, heights, measured, guess = bounce
     residuals = lambda p, d: heights(p) - d  # noqa: E731
@@ -353,6 +354,7 @@ def test_full_inertia_from_known_torques(example):
     _assert_same_report(result.identifiability(), report)  # through the log-Cholesky map
 
 
+@pytest.mark.slow
 def test_fit_over_many_experiments_is_vmapped(bounce):
     """Two drops from different heights, one loss: the mean over the vmapped experiments."""
     scene, _, _, guess = bounce

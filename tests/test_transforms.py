@@ -319,6 +319,7 @@ def _counting_free_attempts():
         simulate.free_step = original
 
 
+@pytest.mark.slow
 def test_free_chunks_have_the_derivatives_of_the_step_by_step_loop():
     """A bouncing ball's chunks, tried as free flight and kept or run again as contact
     steps: reverse mode with respect to the params and the state, and forward mode under
@@ -363,6 +364,7 @@ def test_free_chunks_have_the_derivatives_of_the_step_by_step_loop():
     assert float(jnp.max(jnp.abs(jac[0]))) > 1e-3 and float(jnp.max(jnp.abs(jac[1]))) == 0.0
 
 
+@pytest.mark.slow
 def test_free_segments_equal_the_step_by_step_loop_with_its_derivatives():
     """rollout(save_every=k) of a scene with contacts tries each segment of k steps as free
     flight first: the recorded states bit for bit and the gradients (checkpointed) as
