@@ -121,3 +121,29 @@ def test_gradients_benchmark_quick(tmp_path):
     assert json.loads((tmp_path / "gradients.json").read_text())["bounce"]["steps"] == 50
     check_header(record)
     assert (tmp_path / "gradients.png").stat().st_size > 0
+
+
+def test_ab_benchmark_quick(tmp_path):
+    """Two versions side by side (here a git revision and this checkout, the same code):
+    each is imported, compiled and set aside in turn, and the jaxrb of this process is
+    the one it had before."""
+    import jaxrb as rb
+
+    before = {name: m for name, m in sys.modules.items() if name == "jaxrb" or name.startswith("jaxrb.")}
+    record = load("ab").main(["HEAD", "WORKTREE", "--quick", "--programs", "stack", "--out", str(tmp_path)])
+    after = {name: m for name, m in sys.modules.items() if name == "jaxrb" or name.startswith("jaxrb.")}
+    assert after == before and sys.modules["jaxrb"] is rb
+    rows = record["summary"]["programs"]
+    assert set(rows) == {"stack first 20", "stack settled 20"}
+    for r in rows.values():
+        assert len(r["a_times_s"]) == len(r["b_times_s"]) == 3 and r["b_over_a_min"] > 0
+    assert record["a"]["source"] != record["b"]["source"]  # HEAD came from `git archive`
+    assert (tmp_path / "ab.json").is_file() and (tmp_path / "ab.png").stat().st_size > 0
+
+
+def test_ab_benchmark_refuses_an_unknown_version_or_program(tmp_path):
+    ab = load("ab")
+    with pytest.raises(SystemExit, match="neither a git revision"):
+        ab.main(["no-such-revision", "WORKTREE", "--quick", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="--programs takes"):
+        ab.main(["HEAD", "WORKTREE", "--programs", "stak", "--out", str(tmp_path)])
