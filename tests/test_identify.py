@@ -110,11 +110,27 @@ def test_free_parameters_round_trip_and_masks():
     ({"mass": [False]}, "selects no entry"),
     ({"gravity": [True, False, True]}, "all three"),
     ({"extra": True}, "extra is None"),
+    ({"mass": 0}, "a boolean mask of shape"),
+    ({"mass": [5]}, "not a body of the scene"),
+    ({"mass": np.array([0.5])}, "boolean mask or integer indices"),
+    ({"restitution": ("a", "ground")}, "is a body, not a contact pair"),
 ])
 def test_bad_free_specifications_are_explained(free, message):
     scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     with pytest.raises(ValueError, match=message):
         FreeParameters(scene, scene.params(restitution=0.5), free)
+
+
+def test_masks_and_indices_as_arrays_select_what_they_say():
+    """A NumPy or JAX boolean array is a mask, an integer array a list of indices (a JAX
+    mask was once read as indices, and NumPy indices as a mask)."""
+    scene = rb.Scene([rb.Body(n, shape=rb.Sphere(0.1), mass=1.0) for n in "abc"])
+    params = scene.params(dtype=jnp.float64)
+    for which in (np.array([0, 1, 2]), jnp.array([0, 1, 2]), [0, 1, 2], np.ones(3, bool), ["a", "b", "c"]):
+        assert FreeParameters(scene, params, {"mass": which}).labels == ("mass[a]", "mass[b]", "mass[c]")
+    for which in (jnp.array([True, False, True]), np.array([True, False, True]), [True, False, True],
+                  np.flatnonzero([True, False, True]), {"a", "c"}):
+        assert FreeParameters(scene, params, {"mass": which}).labels == ("mass[a]", "mass[c]")
 
 
 def test_a_guess_on_the_boundary_is_refused():
@@ -289,6 +305,59 @@ def test_free_fall_cannot_tell_the_mass():
     assert abs(direction[0]) > 0.999 and report.labels[0] == "mass[ball]"
     assert np.isinf(report.std[0]) and np.all(np.isfinite(report.std[1:]))
     assert "+1.00 mass[ball]" in str(report)
+
+
+def test_fewer_residuals_than_parameters_leave_the_unseen_directions_unidentifiable():
+    """With m < p residuals the SVD has only m singular values: the p - m directions the
+    data cannot see are reported (singular value 0), and with no residual to spare
+    (m <= p) the noise variance, covariance and standard errors are NaN, not zero."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    truth = scene.params(dtype=jnp.float64)
+
+    def weight(params, measured):  # one residual: m g_z; 4 free scalars: mass, gravity
+        return jnp.atleast_1d(params.mass[0] * params.gravity[2] - measured)
+
+    report = rb.identify.identifiability(weight, scene, truth, ["mass", "gravity"], data=-9.81 + 0.01)
+    assert report.singular_values.shape == (4,) and np.all(report.singular_values[1:] == 0.0)
+    assert len(report.unidentifiable) == 3 and not report.identifiable
+    # the weight sees m g_z only, through the relative changes of m and g_z alike (d ln m +
+    # d ln g_z); g_x and g_y not at all
+    np.testing.assert_allclose(np.abs(report.directions[0]), [0.5**0.5, 0, 0, 0.5**0.5], atol=1e-12)
+    assert np.isnan(report.sigma2) and not np.any(np.isfinite(report.std))
+
+    def three(params, measured):  # m == p: an exact fit, no degree of freedom left
+        return params.gravity - measured
+
+    exact = rb.identify.identifiability(three, scene, truth, "gravity", data=truth.gravity)
+    assert exact.identifiable and np.isnan(exact.sigma2) and np.all(np.isnan(exact.std))
+
+
+def test_non_finite_sensitivities_are_named():
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    truth = scene.params(dtype=jnp.float64)
+
+    def residuals(params, measured):  # sqrt at 0: a finite value with an infinite slope
+        return jnp.stack([jnp.sqrt(params.gravity[0]), params.mass[0] - measured, params.gravity[2]])
+
+    with pytest.raises(ValueError, match=r"residuals 0 \(of 3\) or their sensitivities are not finite"):
+        rb.identify.identifiability(residuals, scene, truth, ["mass", "gravity"], data=1.0)
+    result = rb.identify.fit_least_squares(residuals, scene, truth, ["mass", "gravity"], data=1.0, progress=False)
+    assert not result.converged and "Jacobian is not finite at the initial guess" in result.message
+    loss = lambda p, d: jnp.sum(residuals(p, d) ** 2)  # noqa: E731
+    result = rb.identify.fit(loss, scene, truth, ["mass", "gravity"], data=1.0, progress=False)
+    assert not result.converged and "the gradient became nan" in result.message
+
+
+def test_patience_counts_steps():
+    """Converged after ``patience`` steps that moved less than xtol (not patience - 1: with
+    patience=1 an iterate was compared with itself and the first step "converged")."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    guess = scene.params(dtype=jnp.float64)
+    loss = lambda p: (p.mass[0] - 5.0) ** 2  # noqa: E731
+    one = rb.identify.fit(loss, scene, guess, "mass", patience=1, max_steps=500, progress=False)
+    assert one.converged and one.steps > 1 and abs(float(one.params.mass[0]) - 5.0) < 1e-3
+    with pytest.raises(ValueError, match="patience must be a positive integer"):
+        rb.identify.fit(loss, scene, guess, "mass", patience=0, progress=False)
 
 
 # ------------------------------------------------------------ (c) mass, collision

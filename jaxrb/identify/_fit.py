@@ -209,6 +209,8 @@ def fit(
         value = objective(space.physical(z))
         return jnp.asarray(value).reshape(())
 
+    if not isinstance(patience, int) or isinstance(patience, bool) or patience < 1:
+        raise ValueError(f"patience must be a positive integer (steps), got {patience!r}.")
     if gradient not in ("auto", "forward", "reverse"):
         raise ValueError(f"gradient must be 'auto', 'forward' or 'reverse', got {gradient!r}.")
     forward = gradient == "forward" or (gradient == "auto" and len(space.labels) <= 16)
@@ -244,11 +246,16 @@ def fit(
         if value <= best:
             best_z, best = z, value
         bar.update(step, best)
+        if not np.isfinite(gmax):
+            message = (f"the gradient became {gmax} at step {step - 1} (the loss was finite: {value:g}); "
+                       "the best iterate is returned")
+            break
         if gmax < gtol:
             converged, message = True, f"gradient below gtol={gtol:g}"
             break
-        window = [*window[-(patience - 1):], np.asarray(jax.flatten_util.ravel_pytree(z)[0])]
-        if len(window) == patience:
+        # ``patience`` steps apart: the window holds ``patience + 1`` iterates.
+        window = [*window[-patience:], np.asarray(jax.flatten_util.ravel_pytree(z)[0])]
+        if len(window) == patience + 1:
             moved = np.max(np.abs(np.asarray(window) - window[-1]), axis=0)
             if np.all(moved <= xtol * (1.0 + np.abs(window[-1]))):
                 converged, message = True, f"moved less than xtol={xtol:g} in {patience} steps"
@@ -288,8 +295,9 @@ def fit_least_squares(
     Args:
         residuals: ``residuals(params, data) -> (m,)`` (any shape; flattened). With
             ``batched=True`` the experiments' residuals are concatenated.
-        xtol: converged when a step changes no unconstrained coordinate by more than
-            ``xtol (|z| + xtol)``.
+        xtol: converged when a step changes no unconstrained coordinate ``z`` by more than
+            ``xtol (1 + |z|)`` (each by its own size: a large coordinate does not loosen
+            the test for the others).
         gtol: converged when the gradient ``J^T r`` has no entry above it.
         damping: the initial ``lam``, relative to the largest entry of ``J^T J``.
         Other arguments: as :func:`fit`.
@@ -315,8 +323,9 @@ def fit_least_squares(
     lam, nu = None, 2.0
     converged, message, step = False, f"max_steps={max_steps} reached", 0
     for step in range(1, max_steps + 1):
-        if not np.isfinite(cost):
-            message = "the residuals are not finite at the initial guess"
+        if not np.isfinite(cost) or not np.all(np.isfinite(jac)):
+            what = "residuals are" if not np.isfinite(cost) else "residuals' Jacobian is"
+            message = f"the {what} not finite at the initial guess"
             break
         gram, grad = jac.T @ jac, jac.T @ r
         if np.max(np.abs(grad), initial=0.0) <= gtol:
@@ -329,7 +338,11 @@ def fit_least_squares(
         r_new, jac_new = (np.asarray(a, dtype=float) for a in linearise(jnp.asarray(x + delta, flat.dtype)))
         cost_new = 0.5 * float(r_new @ r_new)
         rho = (cost - cost_new) / predicted if predicted > 0 else -1.0
-        small = np.max(np.abs(delta)) <= xtol * (np.max(np.abs(x)) + xtol)
+        small = np.all(np.abs(delta) <= xtol * (1.0 + np.abs(x)))
+        if np.isfinite(cost_new) and rho > 0 and not np.all(np.isfinite(jac_new)):
+            message = (f"the Jacobian is not finite at the step's new point (cost {cost_new:g}); the last iterate, "
+                       "where it is, is returned")
+            break
         if np.isfinite(cost_new) and rho > 0:
             x, r, jac, cost = x + delta, r_new, jac_new, cost_new
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)

@@ -45,12 +45,14 @@ class Identifiability:
         labels: ``(p,)`` names of the free parameters.
         values: ``(p,)`` their values at the point of analysis.
         jacobian: ``(m, p)`` ``dr/dtheta``, in each parameter's own units.
-        singular_values: ``(k,)`` of the relative sensitivity matrix ``J diag(|theta|)``,
-            largest first.
-        directions: ``(k, p)`` the matching right singular vectors (relative changes).
+        singular_values: ``(p,)`` of the relative sensitivity matrix ``J diag(|theta|)``,
+            largest first (with fewer residuals than parameters, ``m < p``, the last
+            ``p - m`` are 0).
+        directions: ``(p, p)`` the matching right singular vectors (relative changes).
         unidentifiable: ``[(relative singular value, direction), ...]`` for every singular
             value below ``rcond`` times the largest: combinations the data do not determine.
-        sigma2: the residual variance ``|r|^2 / (m - p)``.
+        sigma2: the residual variance ``|r|^2 / (m - p)``; NaN when ``m <= p`` (no residual
+            to estimate it from; the covariance and the standard errors are then NaN too).
         covariance: ``(p, p)`` ``sigma^2 (J^T J)^+`` (pseudo-inverse with ``rcond``).
         std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
         rcond: the threshold used.
@@ -180,12 +182,25 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
 def _report(space, params: Params, theta, jac, res, rcond) -> Identifiability:
     if rcond is None:
         rcond = 100.0 * float(np.sqrt(np.finfo(np.asarray(params.mass).dtype).eps))
+    # By row: forward mode spreads one infinite slope to every column as inf * 0 = NaN.
+    bad = np.flatnonzero(~np.all(np.isfinite(jac), axis=1) | ~np.isfinite(res))
+    if bad.size:
+        rows = ", ".join(map(str, bad[:8])) + (", ..." if bad.size > 8 else "")
+        raise ValueError(f"At these parameters residuals {rows} (of {res.size}) or their sensitivities are not "
+                         "finite (NaN or inf), so there is nothing to analyse: check that the simulation is "
+                         "finite there (e.g. run it with jax_debug_nans).")
     scale = np.where(np.abs(theta) > 0, np.abs(theta), 1.0)
-    _, sv, vt = np.linalg.svd(jac * scale[None, :], full_matrices=False)
+    m, p = jac.shape
+    # All p directions, and p singular values: with fewer residuals than parameters
+    # (m < p) the SVD has only m, and the p - m directions the data cannot see at all have
+    # singular value 0.
+    _, sv, vt = np.linalg.svd(jac * scale[None, :], full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(p - sv.size)])
     top = sv[0] if sv.size and sv[0] > 0 else 1.0
     weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= rcond * top]
-    m, p = jac.shape
-    sigma2 = float(res @ res / max(m - p, 1))
+    # With no residual to spare (m <= p) the noise variance cannot be estimated from the
+    # fit (an exact fit would claim zero error): NaN, not |r|^2 / 1.
+    sigma2 = float(res @ res / (m - p)) if m > p else float("nan")
     scaled_cov = np.linalg.pinv((jac * scale).T @ (jac * scale), rcond=rcond**2, hermitian=True)
     covariance = sigma2 * scale[:, None] * scaled_cov * scale[None, :]
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))

@@ -161,26 +161,41 @@ class FreeParameters:
             return np.ones(size, bool)
         if field == "gravity":
             raise ValueError("free['gravity'] must be True (all three components).")
-        which = list(which) if not isinstance(which, np.ndarray) else which
-        if isinstance(which, np.ndarray) or (which and isinstance(which[0], (bool, np.bool_))):
+        if isinstance(which, (str, bool, int, float, np.generic)) or (hasattr(which, "dtype") and np.ndim(which) == 0):
+            raise ValueError(f"free[{field!r}] must be True, a list of names or indices, or a boolean mask of "
+                             f"shape ({size},); got {which!r}. (One entry: put it in a list.)")
+        array = np.asarray(which) if hasattr(which, "dtype") else None  # NumPy or JAX arrays
+        if array is not None and array.dtype == bool or (
+                array is None and len(which) and all(isinstance(x, (bool, np.bool_)) for x in which)):
             mask = np.asarray(which, bool)
             if mask.shape != (size,):
                 raise ValueError(f"free[{field!r}] mask has shape {mask.shape}; {field} needs ({size},).")
             return mask
+        if array is not None and not np.issubdtype(array.dtype, np.integer):
+            raise ValueError(f"free[{field!r}]: an array must be a boolean mask or integer indices, got dtype "
+                             f"{array.dtype}.")
         mask = np.zeros(size, bool)
-        for item in which:
+        for item in (array.tolist() if array is not None else which):
             mask[self._index(field, item)] = True
         return mask
 
     def _index(self, field, item) -> int:
         scene = self.scene
         if field in _PER_BODY:
-            return scene.index(item) if isinstance(item, str) else int(item)
+            if isinstance(item, str):
+                return scene.index(item)
+            if not isinstance(item, (int, np.integer)) or isinstance(item, bool) or not 0 <= item < scene.num_bodies:
+                raise ValueError(f"free[{field!r}]: {item!r} is not a body of the scene: give a name or an index "
+                                 f"in [0, {scene.num_bodies}).")
+            return int(item)
         pairs = list(scene.contact_pairs)
-        if isinstance(item, (int, np.integer)):
+        if isinstance(item, (int, np.integer)) and not isinstance(item, bool):
             if not 0 <= item < len(pairs):
                 raise ValueError(f"free[{field!r}]: pair index {item} out of range; the scene has {len(pairs)} pairs.")
             return int(item)
+        if isinstance(item, str):
+            raise ValueError(f"free[{field!r}]: {item!r} is a body, not a contact pair: give pairs as tuples in a "
+                             f"list, e.g. [{pairs[0]!r}], or pair indices.")
         pair = tuple(item)
         for candidate in (pair, pair[::-1]):
             if candidate in pairs:
