@@ -256,9 +256,18 @@ class Plane(Shape):
     offset: float = 0.0
 
     def __post_init__(self):
-        n = tuple(float(x) for x in self.normal)
+        try:
+            n = tuple(float(x) for x in self.normal)
+        except (TypeError, ValueError):
+            n = ()
         norm = math.sqrt(sum(x * x for x in n))
         if len(n) != 3 or not norm > 0 or not math.isfinite(norm):
             raise ValueError(f"Plane.normal must be a non-zero 3-vector, got {self.normal!r}.")
+        try:
+            offset = float(self.offset)
+        except (TypeError, ValueError):
+            offset = math.nan
+        if not math.isfinite(offset):
+            raise ValueError(f"Plane.offset must be a finite number (m), got {self.offset!r}.")
         object.__setattr__(self, "normal", tuple(x / norm for x in n))
-        object.__setattr__(self, "offset", float(self.offset))
+        object.__setattr__(self, "offset", offset)

@@ -572,6 +572,31 @@ def test_box_edge_on_face_gives_two_contacts():
     np.testing.assert_allclose(np.sort(c.point[0][c.active[0], 0]), [-0.3, 0.3], atol=1e-14)
 
 
+@pytest.mark.parametrize("spin_degrees", [0.0, 10.0, 20.0, 30.0])
+def test_an_edge_parallel_to_a_face_within_the_margin_keeps_the_faces_distance(spin_degrees):
+    """Separated boxes whose edges lie parallel to a face: edge axes tie with the face axis
+    there, and the edge pair tried as the closest may not be. Slot 0 once took it over the
+    face manifold's own exact pair: a plank across a block 1 cm above it, spun 20 degrees,
+    got a slot at 0.30 m with a normal 70 degrees off +z; a box on its edge across a face,
+    a second active slot at 0.04 m with a normal 45 degrees off."""
+    spin = axis_angle([0, 0, 1], np.radians(spin_degrees))
+    plank, block, clearance = Box((0.8, 0.1, 0.1)), Box((0.2, 0.5, 0.25)), 0.01
+    c = collision.collide(plank, np.array([0.0, 0.0, 0.25 + 0.1 + clearance]), spin,
+                          block, np.zeros(3), IDENTITY, margin=0.05)
+    assert np.all(c.active)  # the plank's underside over the block's top: four corners of the overlap
+    np.testing.assert_allclose(c.gap, clearance, atol=1e-12)
+    np.testing.assert_allclose(c.normal, np.broadcast_to([0.0, 0.0, 1.0], (4, 3)), atol=1e-12)
+
+    # A box on one of its edges, the edge across a larger box's top face, 2 cm above it.
+    on_edge = quat_mul(spin, axis_angle([1, 0, 0], np.pi / 4))
+    bar = Box((1.0, 0.2, 0.2))
+    c = collision.collide(bar, np.array([0.0, 0.0, 0.3 + 0.02 + 0.2 * np.sqrt(2)]), on_edge,
+                          Box((0.3, 0.3, 0.3)), np.zeros(3), IDENTITY, margin=0.05)
+    assert int(np.sum(c.active)) == 2  # where the edge leaves the face, on both sides
+    np.testing.assert_allclose(np.asarray(c.gap)[np.asarray(c.active)], 0.02, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(c.normal)[np.asarray(c.active)], [[0, 0, 1.0]] * 2, atol=1e-12)
+
+
 def test_corner_facing_corner_within_margin_reports_the_diagonal_distance():
     """Separated boxes whose closest features are two corners: no face overlaps, and the
     separating axes underestimate the gap; the exact closest pair must be reported."""

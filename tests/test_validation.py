@@ -37,6 +37,9 @@ BALL = rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)
         (lambda: rb.Box((0.1, 0.2)), "3 entries"),
         (lambda: rb.HollowSphere(0.1, thickness=0.2), "thickness"),
         (lambda: rb.Plane(normal=(0, 0, 0)), "normal"),
+        (lambda: rb.Plane(normal=1.0), "normal must be a non-zero 3-vector"),
+        (lambda: rb.Plane(offset=float("nan")), "offset must be a finite number"),
+        (lambda: rb.Plane(offset=float("inf")), "offset must be a finite number"),
     ],
 )
 def test_invalid_bodies_and_shapes(make, match):

@@ -186,10 +186,12 @@ def _closest_pair(pa, axes_a, ea, pb, axes_b, eb, edge_a, edge_b):
     whose closest set always contains a corner of one box), or two non-parallel edges
     interior to both. In the last case the separation vector is perpendicular to both
     edges, so its direction is one of the 9 edge-edge axes, where the separation equals the
-    distance: it is the best edge axis of the SAT (the maximiser is unique for disjoint
-    boxes), and ``edge_a``, ``edge_b`` (the closest points of that axis's two supporting
-    edges) are that pair. Every candidate is a true pair of surface points, so the smallest
-    is the exact distance. Returns ``(point on A, point on B)``; meaningless, but finite,
+    distance: it is the best edge axis of the SAT, and ``edge_a``, ``edge_b`` (the closest
+    points of that axis's two supporting edges) are that pair. Every candidate is a true
+    pair of surface points, so the smallest is never below the distance; it is the exact
+    distance unless the best edge axis ties with others (an edge parallel to a face), where
+    the edge pair handed in may not be the closest: the caller keeps a face manifold's own
+    pair then. Returns ``(point on A, point on B)``; meaningless, but finite,
     for overlapping boxes.
     """
 
@@ -315,7 +317,14 @@ def box_box(
     closest_a, closest_b = _closest_pair(pa, axes_a, ea, pb, axes_b, eb, edge_a, edge_b)
     distance = spatial.safe_norm(closest_a - closest_b)
     exact_normal = spatial.safe_normalize(closest_a - closest_b)
-    replace = separated & (~found[0] | (jnp.abs(distance - gap[0]) > tie)) & (distance > 0)
+    # A face manifold's slot is itself a true pair of surface points, so only a strictly
+    # closer pair replaces it: where an edge lies parallel to a face, edge axes tie with
+    # the face axis, and the edge pair ``_closest_pair`` is handed may not be the closest
+    # (a plank across a block, spun 20 degrees: slot 0 went from the exact 0.01 m with
+    # normal +z to 0.30 m with a normal 70 degrees off). An edge contact's gap is a
+    # separation along its axis, a lower bound of the distance: replaced when it differs.
+    differs = jnp.where(use_edge, jnp.abs(distance - gap[0]) > tie, distance < gap[0] - tie)
+    replace = separated & (~found[0] | differs) & (distance > 0)
     first = jnp.arange(4) == 0
     surface_a = jnp.where((first & replace)[:, None], closest_a[None, :], surface_a)
     normals = jnp.where((first & replace)[:, None], exact_normal[None, :], normals)
