@@ -422,13 +422,16 @@ def from_mesh(
         The body in the mesh's frame (``com`` need not be the origin).
 
     Raises:
-        ValueError: neither or both of ``density``/``mass``; or a signed volume ``<= 0``
-            (an inside-out mesh; an open mesh is caught only when its signed volume
-            comes out ``<= 0``, as the mesh is not checked for watertightness). Under
-            ``jit``/``grad``/``vmap`` the volume is not known at trace time, and the same
-            message comes from ``eqx.error_if`` at run time instead.
+        ValueError: neither or both of ``density``/``mass``; a mesh that is not closed
+            and consistently oriented (checked where ``vertices`` and ``faces`` are
+            concrete, as :class:`jaxrb.shapes.Mesh` checks them); or a signed volume
+            ``<= 0`` (an inside-out mesh). Under ``jit``/``grad``/``vmap`` the volume is
+            not known at trace time, and that message comes from ``eqx.error_if`` at run
+            time instead (the closure is then not checked).
     """
     _check_mass_or_density(density, mass, "from_mesh")
+    if not isinstance(vertices, jax.core.Tracer) and not isinstance(faces, jax.core.Tracer):
+        shapes._check_closed_and_oriented(np.asarray(vertices, dtype=float), np.asarray(faces))
     signed_volume, com, unit_inertia = _mesh_moments(jnp.asarray(vertices), jnp.asarray(faces))
     known_volume = _concrete_float(signed_volume)
     if known_volume is not None:

@@ -244,8 +244,33 @@ class Mesh(Shape):
             raise ValueError(f"Mesh.faces must have shape (F>=4, 3), got {f.shape}.")
         if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
             raise ValueError(f"Mesh.faces must be integer indices in [0, {len(v)}).")
+        _check_closed_and_oriented(v, f)
         object.__setattr__(self, "vertices", tuple(map(tuple, v.tolist())))
         object.__setattr__(self, "faces", tuple(map(tuple, f.astype(int).tolist())))
+
+
+def _check_closed_and_oriented(vertices, faces) -> None:
+    """Raise unless every edge of the mesh is traversed exactly once in each direction by
+    its faces: the surface is closed, and its faces agree on the orientation (the volume
+    integrals of :func:`jaxrb.inertia.from_mesh` are wrong otherwise, silently: an open
+    unit cube missing one face gave 833 kg at a density of 1000). Vertices at the same
+    position count as one, so a triangle soup (as STL files store a mesh) passes."""
+    import numpy as np
+
+    _, same = np.unique(vertices, axis=0, return_inverse=True)
+    corners = same.reshape(-1)[faces]
+    edges = np.stack([corners, np.roll(corners, -1, axis=1)], -1).reshape(-1, 2).astype(np.int64)
+    code = edges[:, 0] * len(vertices) + edges[:, 1]
+    codes, counts = np.unique(code, return_counts=True)
+    twice = int(np.sum(counts > 1))
+    opposite = edges[:, 1] * len(vertices) + edges[:, 0]
+    open_edges = int(np.sum(~np.isin(opposite, codes)))
+    if twice or open_edges:
+        raise ValueError(
+            f"Mesh must be a closed, consistently oriented surface (each edge shared by two faces that traverse "
+            f"it in opposite directions), but {open_edges} edges have no opposite (the surface is open there) "
+            f"and {twice} are traversed twice the same way (a face flipped or given twice). Its volume and "
+            "inertia would be wrong: close the surface and orient every face counter-clockwise seen from outside.")
 
 
 @dataclasses.dataclass(frozen=True)

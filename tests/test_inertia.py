@@ -501,6 +501,26 @@ def test_inside_out_mesh_raises():
         inertia.mass_properties(shapes.Mesh(vertices, faces[:, ::-1]), density=1.0)
 
 
+def test_open_or_inconsistently_oriented_meshes_are_refused():
+    """The volume integrals need a closed surface whose faces agree on the orientation;
+    an open cube missing one face gave 833 kg at a density of 1000, silently."""
+    vertices, faces = _box_mesh(np.array([0.5, 0.5, 0.5]), np.eye(3), np.zeros(3))
+    flipped = faces.copy()
+    flipped[0] = flipped[0][::-1]
+    for bad, why in ((faces[2:], "4 edges have no opposite"), (flipped, "3 are traversed twice"),
+                     (np.vstack([faces, faces[:1]]), "3 are traversed twice")):
+        with pytest.raises(ValueError, match=f"closed, consistently oriented.*{why}"):
+            shapes.Mesh(vertices, bad)
+        with pytest.raises(ValueError, match="closed, consistently oriented"):
+            inertia.from_mesh(vertices, bad, mass=1.0)
+    # A triangle soup (each face its own three vertices, as STL stores a mesh) is closed:
+    # vertices at the same position are one.
+    soup_vertices, soup_faces = vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3)
+    soup = inertia.mass_properties(shapes.Mesh(soup_vertices, soup_faces), density=1000.0)
+    np.testing.assert_allclose(float(soup.mass), 1000.0, rtol=1e-12)
+    _assert_inertia_close(soup.inertia, inertia.box(1000.0, jnp.asarray([0.5, 0.5, 0.5])).inertia, rtol=1e-12)
+
+
 def test_inside_out_mesh_fails_at_run_time_under_jit():
     # Traced vertices: the volume's sign is unknown at trace time, so eqx.error_if reports it.
     vertices, faces = _box_mesh(np.array([0.5, 0.5, 0.5]), np.eye(3), np.zeros(3))
