@@ -14,6 +14,7 @@ import importlib.util
 import pathlib
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -131,6 +132,16 @@ def test_masks_and_indices_as_arrays_select_what_they_say():
     for which in (jnp.array([True, False, True]), np.array([True, False, True]), [True, False, True],
                   np.flatnonzero([True, False, True]), {"a", "c"}):
         assert FreeParameters(scene, params, {"mass": which}).labels == ("mass[a]", "mass[c]")
+    # Forward mode differentiates the coordinates that move a free value, one per label
+    # (not the 3 coordinates of mass, nor 6 per body of the inertia).
+    for free in ({"mass": ["b"]}, {"inertia": ["c"], "gravity": True}, {"mass": [0, 2], "inertia": True}):
+        space = FreeParameters(scene, params, free)
+        assert len(space.moving()) == len(space.labels)
+    space = FreeParameters(scene, params, {"mass": ["b"], "inertia": ["c"]})
+    flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())
+    moved = space.physical(unravel(flat.at[space.moving()].add(0.1)))
+    assert float(moved.mass[1]) != 1.0 and not np.allclose(moved.inertia[2], params.inertia[2])
+    assert np.all(np.asarray(moved.mass)[[0, 2]] == 1.0) and np.all(moved.inertia[:2] == params.inertia[:2])
 
 
 def test_a_guess_on_the_boundary_is_refused():

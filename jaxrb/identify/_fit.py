@@ -215,12 +215,14 @@ def fit(
         raise ValueError(f"gradient must be 'auto', 'forward' or 'reverse', got {gradient!r}.")
     forward = gradient == "forward" or (gradient == "auto" and len(space.labels) <= 16)
 
+    moving = space.moving()
+
     def value_and_grad(z):
         if not forward:
             return jax.value_and_grad(total)(z)
         flat, unravel = jax.flatten_util.ravel_pytree(z)
-        grad, value = jax.jacfwd(lambda x: (total(unravel(x)),) * 2, has_aux=True)(flat)
-        return value, unravel(grad)
+        grad, value = jax.jacfwd(lambda x: (total(unravel(flat.at[moving].set(x))),) * 2, has_aux=True)(flat[moving])
+        return value, unravel(jnp.zeros_like(flat).at[moving].set(grad))
 
     @eqx.filter_jit
     def update(z, opt_state):
@@ -309,10 +311,15 @@ def fit_least_squares(
     vector = _objective(residuals, data, batched, jnp.ravel)
     flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())
 
+    moving = space.moving()
+
     @jax.jit
     def linearise(x):
-        jac, r = jax.jacfwd(lambda x: (jnp.ravel(vector(space.physical(unravel(x)))),) * 2, has_aux=True)(x)
-        return r, jac
+        # One JVP per free scalar; the coordinates that move nothing keep zero columns.
+        def residual(free):
+            return jnp.ravel(vector(space.physical(unravel(x.at[moving].set(free)))))
+        jac, r = jax.jacfwd(lambda free: (residual(free),) * 2, has_aux=True)(x[moving])
+        return r, jnp.zeros((r.size, x.size), jac.dtype).at[:, moving].set(jac)
 
     bar = _Progress(max_steps, progress, "least squares")
     x = np.asarray(flat, dtype=float)
