@@ -1,0 +1,89 @@
+"""rb.ode.solve_with_impacts: slow (plastic) impacts and short flights, against closed forms.
+
+A ball of radius R dropped from height H above the ground (centre at H + R) first hits at
+``t_0 = sqrt(2 H / g)`` with speed ``v_0 = sqrt(2 g H)``. Impact ``n`` approaches at
+``v_0 e^n`` and, if that is above the restitution threshold, leaves at ``v_0 e^(n+1)``,
+so the next impact comes ``2 v_0 e^(n+1) / g`` later. An approach slower than the
+threshold is plastic (``e = 0``): the ball stays on the ground.
+"""
+
+import jax
+import numpy as np
+
+import jaxrb as rb
+
+jax.config.update("jax_enable_x64", True)
+
+G = 9.81
+R = 0.1
+H = 1.0
+# Penetration allowed: each event after a restart below the ground comes a few ulps
+# (3.6e-15 m) deeper, so any real miss (a pass through the ground) is far larger.
+DEPTH = 1e-6
+
+
+def ball_scene():
+    return rb.Scene([rb.Body("ball", shape=rb.Sphere(R), mass=1.0)], gravity=(0, 0, -G), ground=rb.Plane(),
+                    contacts="all")
+
+
+def closed_form_impacts(e, n):
+    """The first ``n`` impact times (s) and approach speeds (m/s) of the elastic bounce sequence."""
+    v0 = np.sqrt(2 * G * H)
+    speeds = v0 * e ** np.arange(n)
+    times = np.sqrt(2 * H / G) + np.concatenate([[0.0], np.cumsum(2 * speeds[1:] / G)])
+    return times, speeds
+
+
+def assert_above_ground(sol):
+    heights = np.asarray(sol.after_impact.position[:, 0, 2]) - R
+    assert heights.min() >= -DEPTH, heights
+    assert float(sol.final.position[0, 2]) - R >= -DEPTH
+
+
+def test_slow_impacts_are_plastic_and_the_ball_rests():
+    """e = 0.5, default threshold 0.25 m/s: impacts 0-4 bounce (closed-form times and
+    rebound speeds), impact 5 approaches at v_0 / 32 = 0.138 m/s and is plastic, after
+    which the ball stays on the ground (vz ~ 0, no sinking)."""
+    e, threshold = 0.5, rb.ContactSettings().restitution_threshold
+    scene = ball_scene()
+    params = scene.params(restitution=e)
+    state = scene.state(params, position=(0, 0, H + R))
+    sol = rb.ode.solve_with_impacts(scene, params, state, 1.5, max_impacts=8)
+    times, speeds = closed_form_impacts(e, 8)
+    bouncing = int(np.sum(speeds > threshold))
+    assert bouncing == 5  # the sequence this test is about: 5 bounces, then a plastic impact
+    # Every located impact is counted; after the plastic one the ball rests, and resting
+    # contact on this path is a sequence of impacts (each within atol of the ground).
+    assert int(sol.num_impacts) == 8
+    found = np.asarray(sol.impact_times)
+    np.testing.assert_allclose(found[: bouncing + 1], times[: bouncing + 1], rtol=1e-9)
+    vz = np.asarray(sol.after_impact.velocity[:, 0, 2])
+    np.testing.assert_allclose(vz[:bouncing], speeds[1 : bouncing + 1], rtol=1e-6)
+    # Plastic: the slow impact and every later one leave the ball at rest. (The later ones
+    # are the resting ball caught again a few ulps below the ground, ~3e-8 s apart.)
+    np.testing.assert_allclose(vz[bouncing:], 0.0, atol=1e-9)
+    assert np.all(found[bouncing:] < times[bouncing] + 1e-6)
+    assert abs(float(sol.final.velocity[0, 2])) <= 1e-9
+    assert_above_ground(sol)
+
+
+def test_short_flights_after_root_finding_are_not_missed():
+    """e = 0.5, threshold 0 (every impact elastic) up to t1 = 1.36 s, after the flights'
+    accumulation point t_0 + 2 v_0 e / (g (1 - e)) = 1.3546 s: all 16 allowed impacts are
+    found at their closed-form times, however short the flight (the 16th follows a 28 us
+    flight, shorter than the first adaptive step), and the ball never passes the ground."""
+    e, t1, max_impacts = 0.5, 1.36, 16
+    scene = ball_scene()
+    params = scene.params(restitution=e)
+    state = scene.state(params, position=(0, 0, H + R))
+    sol = rb.ode.solve_with_impacts(scene, params, state, t1, max_impacts=max_impacts,
+                                    contact=rb.ContactSettings(restitution_threshold=0.0))
+    times, speeds = closed_form_impacts(e, max_impacts)
+    expected = int(np.sum(times < t1))
+    assert int(sol.num_impacts) == min(expected, max_impacts) == max_impacts
+    # The last flights are 1e-9 m high. An event a few ulps (depth ~3.6e-15 m) below the
+    # ground adds ~e g depth / v to a rebound: 1.3e-10 m/s at the 16th's 1.4e-4 m/s.
+    np.testing.assert_allclose(np.asarray(sol.impact_times), times, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(sol.after_impact.velocity[:, 0, 2]), e * speeds, rtol=1e-6, atol=1e-9)
+    assert_above_ground(sol)
