@@ -343,6 +343,22 @@ def test_fewer_residuals_than_parameters_leave_the_unseen_directions_unidentifia
     assert exact.identifiable and np.isnan(exact.sigma2) and np.all(np.isnan(exact.std))
 
 
+def test_a_fits_jacobian_converts_for_a_tiny_body_beside_gravity():
+    """dr/dz -> dr/dtheta divides by the parameter maps' Jacobian, whose entries differ by
+    the parameters' units: a 1 mm ball's inertia (4e-13 kg m^2) beside gravity once read
+    as an inertia at the triangle inequality's limit. With the free values themselves as
+    residuals, dr/dtheta is the identity."""
+    from jaxrb.identify._identifiability import from_unconstrained_jacobian
+
+    scene = rb.Scene([rb.Body("grain", shape=rb.Sphere(0.5e-3), mass=4.1e-6)])
+    params = scene.params(dtype=jnp.float64)
+    space = FreeParameters(scene, params, ["inertia", "gravity"])
+    flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())
+    jac_z = np.asarray(jax.jacfwd(lambda x: space.to_vector(space.physical(unravel(x))))(flat))
+    report = from_unconstrained_jacobian(space, params, jac_z, np.zeros(jac_z.shape[0]))
+    np.testing.assert_allclose(report.jacobian, np.eye(len(space.labels)), atol=1e-9)
+
+
 def test_non_finite_sensitivities_are_named():
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
     truth = scene.params(dtype=jnp.float64)

@@ -170,11 +170,19 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
         raise FlatMapError("A free parameter's map is flat to rounding here (restitution or friction at an "
                          f"end of its range), so the fit's Jacobian cannot be converted. {again}")
     # A one-to-one map per entry loses nothing in the division; the inertia's coupled map
-    # does, by its condition number, which is unbounded at the triangle inequality's limit.
-    if np.linalg.cond(square) > 1e10:  # more than ~1e-6 relative would be lost
+    # does, by its condition number, which is unbounded at the triangle inequality's limit
+    # (the flat direction's column, computed by cancellation, is then noise: the tumbling
+    # fit of notebooks/04 converted that way gave a Jacobian 61% off a new linearisation).
+    # Each row is scaled to a largest entry of 1 first, so that the parameters' units do
+    # not count (a 1 mm ball's inertia, 4e-13 kg m^2, beside gravity: 2e12 unscaled, 2.0
+    # scaled); the columns are not, as that would hide the flattening.
+    rows = np.abs(square).max(axis=1, keepdims=True)
+    rows = np.where(rows > 0, rows, 1.0)  # a zero row stays zero: singular, refused below
+    if np.linalg.cond(square / rows) > 1e10:  # more than ~1e-6 relative would be lost
         raise FlatMapError("An inertia sits at the triangle inequality's limit (a flat body, I1 + I2 = I3), "
-                         f"where its log-Cholesky map is flat, so the fit's Jacobian cannot be converted. {again}")
-    jac_theta = np.linalg.solve(square.T, jacobian[:, moving].T).T
+                           f"where its log-Cholesky map is flat, so the fit's Jacobian cannot be converted. {again}")
+    # dr/dtheta = dr/dz square^-1, with square = diag(rows) (square / rows).
+    jac_theta = np.linalg.solve((square / rows).T, jacobian[:, moving].T).T / rows.T
     theta = np.asarray(space.to_vector(params), dtype=float)
     return _report(space, params, theta, jac_theta, np.asarray(residuals, dtype=float).ravel(), rcond)
 
