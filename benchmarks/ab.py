@@ -31,6 +31,12 @@ Programs (``--programs``, comma-separated; all by default)
       its state after 1000 (``stack settled 200``), each as one call.
     * ``slide``: a box (half-extent 0.1 m, 1 kg) sliding at 5 m/s on the ground, mu = 0.5,
       400 steps, float64: forward and gradient (every step in contact).
+    * ``roll``: the ball of ``ball`` on the ground, sliding at 2 m/s without spin, so that
+      friction makes it roll, 400 steps, float64: forward and gradient (every step in
+      contact, one contact slot: the counterpart of ``slide``'s four).
+    * ``drop``: the box of ``slide`` dropped from 0.5 m clearance onto a face, tilted 0.1 rad,
+      e = 0.5, 1000 steps, float64: forward and gradient (mostly flight, four slots once it
+      lands: the counterpart of ``ball``).
 
 How to run (from the repository root)
     python benchmarks/ab.py HEAD WORKTREE               # the uncommitted change
@@ -64,7 +70,7 @@ from _machine import record_header  # noqa: E402
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 DEFAULT_OUT = HERE / "results"
-PROGRAMS = ("ball", "stack", "slide")
+PROGRAMS = ("ball", "stack", "slide", "roll", "drop")
 
 
 def progress(message: str) -> None:
@@ -174,27 +180,48 @@ def stack_programs(rb, steps: int) -> dict:
             f"stack settled {steps}": (program, (params, settled), None)}
 
 
-def slide_programs(rb, steps: int) -> dict:
-    dtype = jnp.float64
-    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0)], ground=rb.Plane(), contacts="all")
-    params = scene.params(friction=0.5, dtype=dtype)
+def one_body_programs(rb, name: str, shape, steps: int, restitution: float, axes: tuple, **start) -> dict:
+    """Forward and gradient of a ``steps``-step rollout of one body on the ground (float64,
+    mu = 0.5, h = 1 ms, ``SymplecticSplitting``), its loss the sum of the body's recorded
+    coordinates ``axes``."""
+    scene = rb.Scene([rb.Body(name, shape=shape, mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(friction=0.5, restitution=restitution, dtype=jnp.float64)
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
-    state = step.prepare(scene.state(params, position=(0.0, 0.0, 0.1), velocity=(5.0, 0.0, 0.0)))
+    state = step.prepare(scene.state(params, **start))
 
     def loss(p, s):
         _, traj = rb.rollout(step, p, s, steps)
-        return jnp.sum(traj.position[:, 0, 0])
+        return jnp.sum(traj.position[:, 0, axes])
 
     forward, fwd_cost = compiled(loss, params, state)
     gradient, grad_cost = compiled(jax.grad(loss, argnums=(0, 1)), params, state)
-    return {"slide fwd": (forward, (params, state), fwd_cost), "slide grad": (gradient, (params, state), grad_cost)}
+    return {f"{name} fwd": (forward, (params, state), fwd_cost),
+            f"{name} grad": (gradient, (params, state), grad_cost)}
+
+
+def slide_programs(rb, steps: int) -> dict:
+    return one_body_programs(rb, "slide", rb.Box((0.1, 0.1, 0.1)), steps, 0.0, (0,), position=(0.0, 0.0, 0.1),
+                             velocity=(5.0, 0.0, 0.0))
+
+
+def roll_programs(rb, steps: int) -> dict:
+    return one_body_programs(rb, "roll", rb.Sphere(0.1), steps, 0.8, (0, 2), position=(0.0, 0.0, 0.1),
+                             velocity=(2.0, 0.0, 0.0))
+
+
+def drop_programs(rb, steps: int) -> dict:
+    tilt = (float(np.cos(0.05)), float(np.sin(0.05)), 0.0, 0.0)  # 0.1 rad about x
+    return one_body_programs(rb, "drop", rb.Box((0.1, 0.1, 0.1)), steps, 0.5, (0, 2), position=(0.0, 0.0, 0.6),
+                             orientation=tilt, velocity=(0.3, 0.0, 0.0))
 
 
 def build(rb, names, quick: bool) -> dict:
     """``name: (compiled program, args, costs or None)`` for the ``names`` asked for."""
     makers = {"ball": lambda: ball_programs(rb, 100 if quick else 1000),
               "stack": lambda: stack_programs(rb, 20 if quick else 200),
-              "slide": lambda: slide_programs(rb, 40 if quick else 400)}
+              "slide": lambda: slide_programs(rb, 40 if quick else 400),
+              "roll": lambda: roll_programs(rb, 40 if quick else 400),
+              "drop": lambda: drop_programs(rb, 100 if quick else 1000)}
     programs = {}
     for name in names:
         programs.update(makers[name]())
@@ -255,7 +282,8 @@ def summarise(versions: dict, times: dict) -> dict:
         }
     ratios = {}
     for tag, key in ((a, "a"), (b, "b")):
-        for pair in (("ball grad", "ball fwd"), ("ball flight grad", "ball flight fwd"), ("slide grad", "slide fwd")):
+        for pair in (("ball grad", "ball fwd"), ("ball flight grad", "ball flight fwd"), ("slide grad", "slide fwd"),
+                     ("roll grad", "roll fwd"), ("drop grad", "drop fwd")):
             if pair[0] in rows:
                 g, f = times[(tag, pair[0])], times[(tag, pair[1])]
                 ratios.setdefault(f"{pair[0]} / fwd", {})[key] = {"min": g.min() / f.min(),

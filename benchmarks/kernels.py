@@ -144,21 +144,30 @@ def source_lines(hlo_text: str, frames: int) -> dict[str, str]:
             for m in re.finditer(r"%([\w.\-]+) = [^\n]*?stack_frame_id=(\d+)", hlo_text)}
 
 
-def kernel_counts(compiled, args, trace_dir: Path) -> collections.Counter:
-    """Kernel events per HLO instruction name in one call of ``compiled``."""
+def kernel_counts(compiled, args, trace_dir: Path) -> tuple[collections.Counter, int]:
+    """Kernel events per HLO instruction name in one call of ``compiled``, and the number
+    of tasks XLA:CPU's thunk executor handed to its thread pool in that call.
+
+    A handoff: when more than 8 kernels of a loop body or program are ready at once, the
+    executor gives half of them to another thread (``ThunkExecutor::SplitReadyQueue``,
+    ``kSplitThreshold = 8`` in jaxlib 0.10.2), which costs that thread's wake-up. The
+    profiler records each as a ``ThreadpoolListener::StartRegion`` event. It varies a
+    little between calls (a handoff needs a free worker)."""
     jax.block_until_ready(compiled(*args))
     with jax.profiler.trace(str(trace_dir)):
         jax.block_until_ready(compiled(*args))
     (path,) = glob.glob(str(trace_dir / "**" / "*.xplane.pb"), recursive=True)
-    counts = collections.Counter()
+    counts, handoffs = collections.Counter(), 0
     for plane in jax.profiler.ProfileData.from_file(path).planes:
         for line in plane.lines:
             if not line.name.startswith("tf_XLA"):
                 continue
             for event in line.events:
-                if not event.name.startswith(WRAPPERS):
+                if event.name.startswith("ThreadpoolListener::StartRegion"):
+                    handoffs += 1
+                elif not event.name.startswith(WRAPPERS):
                     counts[event.name] += 1
-    return counts
+    return counts, handoffs
 
 
 def attribute(counts, names, steps: int, depth: int) -> dict[str, float]:
@@ -189,10 +198,11 @@ def measure(scene: str, steps: int, depth: int, frames: int = 1) -> dict:
     for mode, fn in (("forward", loss), ("reverse", jax.grad(loss, argnums=(0, 1)))):
         compiled = jax.jit(fn).lower(params, state).compile()
         with tempfile.TemporaryDirectory(prefix=f"kernels_{mode}_") as trace_dir:
-            counts = kernel_counts(compiled, (params, state), Path(trace_dir))
+            counts, handoffs = kernel_counts(compiled, (params, state), Path(trace_dir))
         text = compiled.as_text()
         record[mode] = {
             "kernels_per_step": sum(counts.values()) / steps,
+            "threadpool_handoffs_per_step": handoffs / steps,
             "by_source": attribute(counts, op_names(text), steps, depth),
             "by_line": by_line(counts, source_lines(text, frames), steps),
         }
@@ -205,6 +215,9 @@ def print_table(scene: str, record: dict, top: int):
     f, r = record["forward"]["kernels_per_step"], record["reverse"]["kernels_per_step"]
     print(f"\n{scene}: {f:.1f} kernels per step forward, {r:.1f} with the reverse pass "
           f"({record['ratio_reverse_over_forward']:.2f}x)")
+    print("thread-pool handoffs per step (see kernel_counts): "
+          f"forward {record['forward']['threadpool_handoffs_per_step']:.2f}, "
+          f"with the reverse pass {record['reverse']['threadpool_handoffs_per_step']:.2f}")
     for mode in ("forward", "reverse"):
         for table in ("by_source", "by_line"):
             print(f"\n{mode}, kernels per step {table.replace('_', ' ')} (first {top}):")

@@ -50,6 +50,11 @@ def test_kernel_count_benchmark_quick(tmp_path):
     assert reverse["kernels_per_step"] > forward["kernels_per_step"]
     assert any(key.startswith("T ") for key in reverse["by_source"])
     assert abs(sum(reverse["by_source"].values()) - reverse["kernels_per_step"]) < 1e-9
+    # Thread-pool handoffs are counted apart from the kernels (a count, so whole per call).
+    for mode in (forward, reverse):
+        assert mode["threadpool_handoffs_per_step"] >= 0
+        calls = mode["threadpool_handoffs_per_step"] * record["steps"]
+        assert abs(calls - round(calls)) < 1e-9
     # The same kernels by the jaxrb source line that traced them: most have one, among them
     # the splitting's axis rotations (SymplecticSplitting is the free body's integrator).
     by_line = forward["by_line"]

@@ -225,7 +225,8 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     # frozen Jacobian: the 1000-step ball's gradient compiled in 26.0-26.4 s instead of
     # 28.4-29.4 s (alternating processes), with the same gradient to the last digit, and a
     # 3-box stack's 100-step gradient (the correction active) within noise in compile and
-    # run time, with the same gradient to the last digit.
+    # run time, with the same gradient to the last digit. Its solution is not saved by
+    # name (see _solver._pgs_jvp): reverse mode runs these few sweeps again.
     depth = jnp.maximum(-gap - settings.penetration_slop, 0.0)
     push = contact.active & (depth > 0)
     still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
