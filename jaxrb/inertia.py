@@ -112,7 +112,9 @@ class MassProperties(eqx.Module):
         rotation = quat_to_matrix(orientation)
         com = position + matvec(rotation, self.com)
         inertia = matmul(matmul(rotation, self.inertia), transpose(rotation))
-        return MassProperties(self.mass, com, inertia)
+        # R I R^T is symmetric; its rounding is not (about 1e-8 relative in float32, which
+        # Body's symmetry check, at 1e-9, refused). Symmetrising is exact in exact arithmetic.
+        return MassProperties(self.mass, com, 0.5 * (inertia + transpose(inertia)))
 
     def shifted_inertia(self, point: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
         """Inertia (kg m^2) about ``point`` (m, same frame), by the parallel-axis theorem.

@@ -351,20 +351,27 @@ class Scene:
         if mass is None:
             mass_arr = jnp.asarray(defaults_mass, dtype=dtype)
         elif isinstance(mass, Mapping):
-            m = defaults_mass.copy()
+            # Set entry by entry in JAX, so that a traced value (under jit or grad) passes
+            # through, as in the array form. Concrete values are validated below.
+            mass_arr = jnp.asarray(defaults_mass, dtype=dtype)
             for name, v in mass.items():
-                m[self.index(name)] = float(v)
-            mass_arr = jnp.asarray(m, dtype=dtype)
+                v = jnp.asarray(v, dtype=dtype)
+                if v.shape != ():
+                    raise ValueError(f"mass[{name!r}] must be a scalar (kg), got shape {v.shape}.")
+                mass_arr = mass_arr.at[self.index(name)].set(v)
         else:
             mass_arr = self._per_body("mass", mass, (), np.zeros(()), dtype)
         if inertia is None:
             inertia_arr = jnp.asarray(defaults_inertia, dtype=dtype)
         elif isinstance(inertia, Mapping):
-            tensor = defaults_inertia.copy()
+            inertia_arr = jnp.asarray(defaults_inertia, dtype=dtype)
             for name, v in inertia.items():
-                v = np.asarray(v, dtype=float)
-                tensor[self.index(name)] = np.diag(v) if v.shape == (3,) else v
-            inertia_arr = jnp.asarray(tensor, dtype=dtype)
+                v = jnp.asarray(v, dtype=dtype)
+                v = jnp.diag(v) if v.shape == (3,) else v
+                if v.shape != (3, 3):
+                    raise ValueError(f"inertia[{name!r}] must be 3 principal moments or a 3x3 tensor (kg m^2), "
+                                     f"got shape {v.shape}.")
+                inertia_arr = inertia_arr.at[self.index(name)].set(v)
         else:
             xp = jnp if _is_traced(inertia) else np
             arr = xp.asarray(inertia, dtype=dtype if xp is jnp else float)

@@ -179,15 +179,23 @@ def inverse3(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 3 3"]:
     """Inverse of a 3x3 matrix by the adjugate: ``adj(M) / det(M)``.
 
     Closed form, so it vectorises as plain element-wise arithmetic; used for inertia
-    tensors, which the scene validates to be symmetric positive definite.
+    tensors, which the scene validates to be symmetric positive definite. Computed on
+    ``M / max|M_ij|`` and divided by that scale after: ``det`` is cubic in ``M``, so
+    unscaled it underflowed in float32 below about 1e-13 kg m^2 (a 0.1 mm grain, whose
+    inverse came out inf) and overflowed above about 1e13.
     """
     m = jnp.asarray(m)
+    # The scale is a constant of the algorithm (the inverse does not depend on it), so it
+    # carries no derivative.
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(m), axis=(-2, -1)))
+    scale = jnp.where(scale > 0, scale, jnp.ones_like(scale))[..., None, None]
+    m = m / scale
     c0 = cross(m[..., 1, :], m[..., 2, :])
     c1 = cross(m[..., 2, :], m[..., 0, :])
     c2 = cross(m[..., 0, :], m[..., 1, :])
     det = dot(m[..., 0, :], c0)
     # Rows of the inverse's transpose are the cofactor rows c_i, so inv = [c0 c1 c2] / det.
-    return jnp.stack([c0, c1, c2], axis=-1) / det[..., None, None]
+    return jnp.stack([c0, c1, c2], axis=-1) / (det[..., None, None] * scale)
 
 
 # ----------------------------------------------------------------------- quaternions
@@ -449,20 +457,19 @@ def matrix_to_euler(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 3"]:
     """``(roll, pitch, yaw)`` of ``R = Rz(yaw) Ry(pitch) Rx(roll)``, pitch in [-pi/2, pi/2].
 
     At gimbal lock (``|pitch| = pi/2``) only ``yaw -/+ roll`` is defined; the split
-    returned there is arbitrary but the rotation it encodes is right.
+    returned there is arbitrary but the rotation it encodes is right, in float32 as well.
     """
     m = jnp.asarray(m)
-    cos_pitch = safe_norm(jnp.stack([m[..., 2, 1], m[..., 2, 2]], -1))
-    pitch = jnp.arctan2(-m[..., 2, 0], cos_pitch)
-    # At gimbal lock the roll and yaw entries are round-off over round-off; put the whole
-    # remaining turn into yaw (roll = 0), read from the entries that stay well defined.
-    locked = cos_pitch < 1e-9
-    roll = jnp.where(locked, 0.0, jnp.arctan2(m[..., 2, 1], m[..., 2, 2]))
-    yaw = jnp.where(
-        locked,
-        jnp.arctan2(-m[..., 0, 1], m[..., 1, 1]),
-        jnp.arctan2(m[..., 1, 0], m[..., 0, 0]),
-    )
+    # Roll first, then yaw from the entries that the roll's rotation turns into (sin, cos)
+    # of the yaw: ``s m02 - c m01 = sin(yaw)``, ``c m11 - s m12 = cos(yaw)`` for any pitch.
+    # So the yaw matches whatever roll round-off gives near the lock, and no threshold
+    # decides when the lock starts. (A fixed threshold of 1e-9 on cos(pitch) let float32's
+    # round-off, ~1e-7, through: the angles then encoded a rotation up to 2 off in its
+    # entries.)
+    roll = jnp.arctan2(m[..., 2, 1], m[..., 2, 2])
+    pitch = jnp.arctan2(-m[..., 2, 0], safe_norm(jnp.stack([m[..., 0, 0], m[..., 1, 0]], -1)))
+    s, c = jnp.sin(roll), jnp.cos(roll)
+    yaw = jnp.arctan2(s * m[..., 0, 2] - c * m[..., 0, 1], c * m[..., 1, 1] - s * m[..., 1, 2])
     return jnp.stack([roll, pitch, yaw], axis=-1)
 
 

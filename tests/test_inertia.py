@@ -584,6 +584,21 @@ def test_dumbbell_by_hand():
     np.testing.assert_allclose(float(composed.mass), 2 * m_ball + m_bar, rtol=1e-15)
 
 
+def test_a_rotated_float32_part_is_symmetric_and_a_body_accepts_it():
+    # R I R^T rounded in float32 was asymmetric at ~1e-8 relative, and Body's check (1e-9)
+    # refused jaxrb's own compose of a rotated box.
+    import jaxrb as rb
+
+    q = spatial.quat_exp(jnp.array([0.3, -0.5, 1.0], jnp.float32))
+    part = inertia.box(jnp.float32(2.0), jnp.array([0.1, 0.2, 0.3], jnp.float32)).transformed(
+        jnp.zeros(3, jnp.float32), q)
+    assert part.inertia.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(part.inertia), np.asarray(part.inertia).T)
+    scene = rb.Scene(bodies=[rb.Body("b", mass_properties=inertia.compose([part]))])
+    np.testing.assert_allclose(np.asarray(scene.params(dtype=jnp.float64).inertia[0]),
+                               np.asarray(part.inertia, np.float64), rtol=1e-6)
+
+
 def test_transformed_rotates_and_translates():
     rng = np.random.default_rng(3)
     quat, rotation = _random_rotation(rng)

@@ -168,6 +168,20 @@ def test_euler_gimbal_lock_still_encodes_the_rotation():
     np.testing.assert_allclose(spatial.euler_to_matrix(*rpy), r, atol=1e-7)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_euler_angles_encode_the_rotation_at_and_near_the_lock_in_both_precisions(dtype):
+    # In float32 cos(pitch) at the lock is round-off (~1e-7), not 0: a fixed lock threshold
+    # of 1e-9 read roll and yaw from round-off, and the angles encoded a rotation up to 2
+    # off in its entries (0.39 at pitch = pi/2).
+    eps = float(jnp.finfo(dtype).eps)
+    for pitch in (np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-6, np.pi / 2 - 1e-4, 1.2, -0.4):
+        for roll, yaw in ((0.3, -0.2), (2.9, 1.1), (-1.7, -3.0)):
+            r = spatial.euler_to_matrix(jnp.asarray(roll, dtype), jnp.asarray(pitch, dtype), jnp.asarray(yaw, dtype))
+            rpy = spatial.matrix_to_euler(r)
+            assert rpy.dtype == dtype
+            assert np.max(np.abs(np.asarray(spatial.euler_to_matrix(*rpy)) - np.asarray(r))) < 20 * eps
+
+
 def test_gram_schmidt_is_the_seed_algorithm():
     a = scipy_matrix(random_quats(10)) + 0.05 * RNG.normal(size=(10, 3, 3))
     b = np.asarray(spatial.gram_schmidt(a))
@@ -208,6 +222,22 @@ def test_inverse3_and_matmul_match_numpy():
     n = RNG.normal(size=(10, 3, 3))
     np.testing.assert_allclose(spatial.matmul(m, n), m @ n, atol=1e-14)
     np.testing.assert_allclose(spatial.cross(m[:, 0], n[:, 0]), np.cross(m[:, 0], n[:, 0]), atol=1e-14)
+
+
+def test_inverse3_of_tiny_and_huge_inertias_in_float32():
+    # det is cubic in M: unscaled, a 0.1 mm grain's inertia (4e-15 kg m^2) gave an inf
+    # inverse in float32 and a 1000 m body's (4e17) a zero one.
+    for moment in (4e-15, 4e-18, 4e17):
+        m = jnp.asarray(moment * np.array([[1.0, 0.1, 0.0], [0.1, 2.0, 0.3], [0.0, 0.3, 1.5]]), jnp.float32)
+        inv = spatial.inverse3(m)
+        assert inv.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(inv)))
+        np.testing.assert_allclose(np.asarray(inv, np.float64), np.linalg.inv(np.asarray(m, np.float64)), rtol=1e-5)
+    # The derivative is the inverse's, -M^-1 dM M^-1, scale or not.
+    m = RNG.normal(size=(3, 3)) + 3 * np.eye(3)
+    dm = RNG.normal(size=(3, 3))
+    _, tangent = jax.jvp(spatial.inverse3, (m,), (dm,))
+    inv = np.linalg.inv(m)
+    np.testing.assert_allclose(tangent, -inv @ dm @ inv, rtol=1e-12, atol=1e-14)
 
 
 def test_float32_stays_float32():

@@ -197,3 +197,26 @@ def test_valid_inputs_pass_and_normalise():
     np.testing.assert_allclose(state.position, [[0, 0, 1], [0, 0, 0]])
     params = scene.params()
     np.testing.assert_allclose(params.mass[1], 500.0 * 0.2 * 0.4 * 0.6, rtol=1e-12)
+
+
+def test_per_body_dicts_of_mass_and_inertia_are_differentiable_and_checked():
+    # The {name: value} form of mass= and inertia= had called float() / np.asarray() on its
+    # values, so under jit or grad it failed with a tracer-conversion error, while the
+    # array form (and the dict form of restitution and friction) passed traced values.
+    scene = rb.Scene(bodies=[rb.Body("ball", rb.Sphere(0.1), mass=1.0),
+                             rb.Body("box", rb.Box((0.1, 0.2, 0.3)), mass=2.0)])
+    by_dict = jax.grad(lambda m: jnp.sum(scene.params(mass={"ball": m}).mass * jnp.array([3.0, 5.0])))(1.5)
+    assert float(by_dict) == 3.0
+    moments = jnp.array([0.1, 0.2, 0.3])
+    by_dict = jax.grad(lambda k: jnp.sum(scene.params(inertia={"box": k * moments}).inertia))(1.0)
+    assert abs(float(by_dict) - 0.6) < 1e-6
+    # Concrete dicts give the same params as before, and are still validated.
+    p = scene.params(mass={"box": 4.0}, inertia={"ball": [0.5, 0.5, 0.5]})
+    np.testing.assert_allclose(np.asarray(p.mass), [1.0, 4.0])
+    np.testing.assert_allclose(np.asarray(p.inertia[0]), 0.5 * np.eye(3))
+    with pytest.raises(ValueError, match="mass"):
+        scene.params(mass={"ball": -1.0})
+    with pytest.raises(ValueError, match=r"mass\['ball'\] must be a scalar"):
+        scene.params(mass={"ball": [1.0, 2.0]})
+    with pytest.raises(ValueError, match=r"inertia\['box'\] must be 3 principal moments or a 3x3 tensor"):
+        scene.params(inertia={"box": [1.0, 2.0]})
