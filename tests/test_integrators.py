@@ -385,3 +385,24 @@ def test_invalid_integrator_options():
         rb.integrators.ImplicitGyroscopic(stages=0)
     with pytest.raises(ValueError, match="permutation"):
         rb.integrators.SymplecticSplitting(axes=(0, 0, 1))
+    # Refused at construction, not at trace time ("Indexer must have integer type").
+    with pytest.raises(ValueError, match="permutation"):
+        rb.integrators.SymplecticSplitting(axes=(0, 1, 2.0))
+    with pytest.raises(ValueError, match="positive integer"):
+        rb.integrators.ImplicitGyroscopic(iterations=True)
+
+
+def test_integer_options_of_any_integer_type_are_accepted():
+    # A NumPy integer is a positive integer (it was refused), and a list of axes is taken
+    # as the tuple it means (it passed the check, then failed at step time: unhashable).
+    gyro = rb.integrators.ImplicitGyroscopic(iterations=np.int64(4), stages=np.int32(2))
+    assert (gyro.iterations, gyro.stages) == (4, 2) and type(gyro.iterations) is int
+    assert rb.integrators.ImplicitMidpoint(iterations=np.int64(5)).iterations == 5
+    split = rb.integrators.SymplecticSplitting(axes=[2, 1, 0])
+    assert split.axes == (2, 1, 0) and hash(split) == hash(rb.integrators.SymplecticSplitting(axes=(2, 1, 0)))
+    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0)])
+    params = scene.params(dtype=jnp.float64)
+    state = scene.state(params, angular_velocity=(0.3, 2.0, 0.1))
+    for integrator in (gyro, split):
+        out = rb.make_step(scene, integrator, 1e-3)(params, state)
+        assert np.all(np.isfinite(np.asarray(out.orientation)))

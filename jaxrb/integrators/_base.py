@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+import numbers
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
@@ -46,3 +47,12 @@ class Integrator(eqx.Module):
     def precompute(self, params: Params) -> Any:
         """Quantities derived from ``params`` alone for :meth:`step`; ``None`` if none."""
         return None
+
+
+def whole_number(value):
+    """``value`` as a Python ``int`` when it is a whole number of any integer type (a NumPy
+    ``int64`` from a config array, say); anything else unchanged, for the class's check to
+    refuse. A field converter: static fields must hash and compare as plain ints."""
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    return value

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, inverse_inertia_body
-from ._base import Integrator
+from ._base import Integrator, whole_number
 from ._composition import kick_drift_kick
 
 __all__ = ["ImplicitGyroscopic", "ImplicitMidpoint"]
@@ -138,8 +138,8 @@ class ImplicitGyroscopic(Integrator):
       in one step (``tests/test_integrators.py``).
     """
 
-    stages: int = eqx.field(default=3, static=True)
-    iterations: int = eqx.field(default=8, static=True)
+    stages: int = eqx.field(default=3, static=True, converter=whole_number)
+    iterations: int = eqx.field(default=8, static=True, converter=whole_number)
     safeguard: bool = eqx.field(default=True, static=True)
     order: ClassVar[int] = 1
 
@@ -225,17 +225,22 @@ class ImplicitMidpoint(Integrator):
 
     * Order 2 (symmetric).
     * Torque-free, conserves world angular momentum exactly (``L`` is never touched by
-      the free flow) and the kinetic energy and ``|L|`` in the body to the Newton
-      tolerance: no drift, at any step size. Symplectic (a Lie-Poisson integrator).
+      the free flow) and, wherever Newton has converged, the kinetic energy and ``|L|``
+      in the body to the Newton tolerance, with no drift. Symplectic (a Lie-Poisson
+      integrator).
     * Cost: two force evaluations (three with velocity-dependent forces), and
       ``iterations`` 3x3 Newton solves per body.
-    * Stability: no step-size limit for the free body as long as Newton converges; with
-      the default 8 iterations, from the initial guess ``P_n``, it does for
-      ``|w| dt <= 2`` on the bodies tested. Large steps cost accuracy in the phase of
-      the motion, not its invariants.
+    * Stability: no step-size limit for the free body as long as Newton converges. With
+      the default 8 iterations, from the initial guess ``P_n``, it converged on every one
+      of 2000 random bodies up to ``|w| dt = 2.5``. Beyond that it does not always
+      converge, and nothing reports it: the unconverged iterate is used, and the
+      energy is then not conserved (at ``|w| dt = 3``, 0.25% of those bodies changed
+      their energy by more than 1e-6, the worst 4.6x in one step; at 4, 2.9% and 5.2x).
+      For such steps use :class:`ImplicitGyroscopic`, whose continuation never gains
+      energy, or a smaller step.
     """
 
-    iterations: int = eqx.field(default=8, static=True)
+    iterations: int = eqx.field(default=8, static=True, converter=whole_number)
     order: ClassVar[int] = 2
 
     def __check_init__(self):
