@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
@@ -345,11 +346,25 @@ def matrix_to_quat(m: Float[ArrayLike, "... 3 3"]) -> Float[Array, "... 4"]:
 def quat_from_axis_angle(
     axis: Float[ArrayLike, "... 3"], angle: Float[ArrayLike, "..."]
 ) -> Float[Array, "... 4"]:
-    """``(cos(phi/2), sin(phi/2) * axis/|axis|)`` (seed 000). ``angle`` in radians."""
-    axis = safe_normalize(axis)
-    half = 0.5 * jnp.asarray(angle)[..., None]
-    axis = jnp.broadcast_to(axis, (*half.shape[:-1], 3)) if axis.ndim < half.ndim else axis
-    return jnp.concatenate([jnp.cos(half), jnp.sin(half) * axis], axis=-1)
+    """``(cos(phi/2), sin(phi/2) * axis/|axis|)`` (seed 000). ``angle`` in radians.
+
+    ``axis`` need not be a unit vector; its batch shape and ``angle``'s broadcast (one axis
+    and many angles, or many axes and one angle). A zero axis names no rotation: given as
+    a concrete array it is refused; under ``jit`` (where it cannot be refused) the result
+    there is the identity ``(1, 0, 0, 0)``, a unit quaternion like every other.
+    """
+    axis, angle = jnp.asarray(axis), jnp.asarray(angle)
+    if axis.ndim == 0 or axis.shape[-1] != 3:
+        raise ValueError(f"quat_from_axis_angle: axis must have shape (..., 3); got {axis.shape}.")
+    norm = safe_norm(axis, keepdims=True)
+    if not isinstance(norm, jax.core.Tracer) and bool(np.any(np.asarray(norm) == 0)):
+        raise ValueError("quat_from_axis_angle: an axis is zero, so it names no rotation: give a nonzero axis "
+                         "(for no rotation, any axis with angle 0).")
+    batch = jnp.broadcast_shapes(axis.shape[:-1], angle.shape)
+    half = jnp.broadcast_to(0.5 * angle, batch)[..., None]
+    axis = jnp.broadcast_to(safe_normalize(axis), (*batch, 3))
+    zero = jnp.broadcast_to(norm == 0, (*batch, 1))
+    return jnp.concatenate([jnp.where(zero, 1.0, jnp.cos(half)), jnp.sin(half) * axis], axis=-1)
 
 
 def _sin_half_over(theta_sq):

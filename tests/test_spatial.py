@@ -74,6 +74,28 @@ def test_axis_angle_matches_scipy_rotvec():
     np.testing.assert_allclose(spatial.rotation_matrix_exp(unit * angle[:, None]), expected, atol=1e-14)
 
 
+def test_axis_angle_broadcasts_axes_and_angles_and_refuses_a_zero_axis():
+    axes = RNG.normal(size=(4, 3))
+    unit = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    # Many axes, one angle (this failed: the (1,) half angle did not broadcast with (4, 3)).
+    np.testing.assert_allclose(spatial.quat_to_matrix(spatial.quat_from_axis_angle(axes, 0.7)),
+                               Rotation.from_rotvec(0.7 * unit).as_matrix(), atol=1e-14)
+    # One axis, many angles; and a (2, 1) batch of angles against (4,) axes: (2, 4).
+    angles = np.array([0.1, -2.0, 3.0])
+    np.testing.assert_allclose(spatial.quat_to_matrix(spatial.quat_from_axis_angle(axes[0], angles)),
+                               Rotation.from_rotvec(angles[:, None] * unit[0]).as_matrix(), atol=1e-14)
+    assert spatial.quat_from_axis_angle(axes, np.ones((2, 1))).shape == (2, 4, 4)
+    # A zero axis names no rotation: refused when concrete (it returned (cos, 0, 0, 0), not
+    # a unit quaternion), the identity under jit, where it cannot be refused.
+    with pytest.raises(ValueError, match="axis is zero"):
+        spatial.quat_from_axis_angle(np.zeros(3), 1.0)
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 3\)"):
+        spatial.quat_from_axis_angle(np.ones(2), 1.0)
+    traced = jax.jit(spatial.quat_from_axis_angle)(jnp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]]), jnp.pi)
+    np.testing.assert_allclose(traced, [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]], atol=1e-15)
+    assert np.all(np.isfinite(jax.jacfwd(lambda a: jax.jit(spatial.quat_from_axis_angle)(a, 1.0))(jnp.zeros(3))))
+
+
 def test_exp_log_round_trip_and_small_angles():
     r = RNG.normal(size=(20, 3))
     r = r / np.linalg.norm(r, axis=1, keepdims=True) * RNG.uniform(0, np.pi - 1e-6, size=(20, 1))
