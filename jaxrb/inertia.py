@@ -61,6 +61,7 @@ __all__ = [
     "from_mesh",
     "compose",
     "principal_axes",
+    "repeated_moment_coupling",
     "check_mass_properties",
 ]
 
@@ -571,6 +572,18 @@ def _eigh_right_handed(matrix):
     return moments, axes
 
 
+def _repeated_pairs(moments):
+    """``(..., 3, 3)`` bool: which pairs of moments count as equal, the diagonal included.
+
+    "Equal" is relative to the trace at ``sqrt(eps)``: above eigh's round-off (~eps), so a
+    rotated cube counts, and it keeps ``1 / (l_j - l_i)`` of the other pairs at most
+    ``1 / (sqrt(eps) trace)``, so that derivatives stay finite.
+    """
+    gap = moments[..., None, :] - moments[..., :, None]
+    scale = jnp.sum(jnp.abs(moments), axis=-1)[..., None, None]
+    return jnp.abs(gap) <= jnp.finfo(moments.dtype).eps ** 0.5 * scale
+
+
 @jax.custom_jvp
 def _principal_axes(matrix):
     return _eigh_right_handed(matrix)
@@ -587,13 +600,10 @@ def _principal_axes_jvp(primals, tangents):
     d_moments = jnp.diagonal(projected, axis1=-2, axis2=-1)
     # dV = V (F o V^T dA V), F_ij = 1/(l_j - l_i). For (nearly) equal moments, as in a cube
     # or a cylinder, the axes are not unique and F is 1/0: those entries are set to 0,
-    # i.e. the axes inside a degenerate eigenspace are held fixed. "Nearly" is relative
-    # to the trace at sqrt(eps), above eigh's round-off (~eps) so a rotated cube counts as
-    # degenerate, and it keeps |F| <= 1/(sqrt(eps) trace) so gradients stay finite.
+    # i.e. the axes inside a degenerate eigenspace are held fixed (what that leaves out:
+    # repeated_moment_coupling).
     gap = moments[..., None, :] - moments[..., :, None]
-    scale = jnp.sum(jnp.abs(moments), axis=-1)[..., None, None]
-    tolerance = jnp.finfo(moments.dtype).eps ** 0.5
-    degenerate = jnp.abs(gap) <= tolerance * scale
+    degenerate = _repeated_pairs(moments)
     inverse_gap = jnp.where(degenerate, 0.0, 1.0 / jnp.where(degenerate, 1.0, gap))
     d_axes = matmul(axes, inverse_gap * projected)
     return (moments, axes), (d_moments, d_axes)
@@ -616,10 +626,45 @@ def principal_axes(
     Computed by cyclic Jacobi rotations (element-wise, so it vectorises under ``vmap``).
     Differentiable: a custom JVP around the eigen-decomposition keeps gradients finite when
     moments repeat (cube, cylinder). There the axes within the repeated eigenspace are not
-    unique and their derivative is taken as 0; the moments' derivatives stay exact.
+    unique and their derivative is taken as 0; the moments' derivatives stay exact, and
+    what the axes do not absorb is :func:`repeated_moment_coupling`'s derivative.
     """
     inertia = jnp.asarray(inertia)
     return _principal_axes(0.5 * (inertia + transpose(inertia)))
+
+
+@jax.custom_jvp
+def repeated_moment_coupling(inertia: Float[ArrayLike, "3 3"]) -> Float[Array, "3 3"]:
+    """Zero, with the derivative that :func:`principal_axes` leaves out at repeated moments.
+
+    With ``inertia = R diag(l) R^T``, a perturbation ``dI`` changes the inertia in the
+    principal frame by ``R^T dI R``. Where ``l_i != l_j`` its ``(i, j)`` entry is absorbed by
+    turning the axes (``dR``); where ``l_i = l_j`` (a sphere, a cube, an axisymmetric body)
+    the axes are not unique, ``principal_axes`` holds them fixed, and the entry remains as
+    an off-diagonal inertia in the principal frame: this function's derivative, ``(R^T dI
+    R)_ij`` on those pairs (``i != j``) and 0 elsewhere. Its value is exactly 0 (the
+    principal frame diagonalises the inertia), so an integrator that works in the principal
+    frame adds the flow of this coupling to its steps at no cost in value and gets the
+    symmetry-breaking derivatives right (:class:`jaxrb.integrators.SymplecticSplitting`).
+
+    Args:
+        inertia: ``(3, 3)`` symmetric, kg m^2 (only its symmetric part is used).
+
+    Returns:
+        ``(3, 3)`` zeros, kg m^2, in the principal frame of :func:`principal_axes`.
+    """
+    # Made from the input (not a constant), so that under vmap the value is batched as its
+    # derivative is: a constant value with a batched tangent failed jax's linearisation.
+    return 0.0 * jnp.asarray(inertia)
+
+
+@repeated_moment_coupling.defjvp
+def _repeated_moment_coupling_jvp(primals, tangents):
+    (matrix,), (d_matrix,) = primals, tangents
+    moments, axes = _eigh_right_handed(0.5 * (matrix + transpose(matrix)))
+    projected = matmul(matmul(transpose(axes), 0.5 * (d_matrix + transpose(d_matrix))), axes)
+    off_block = _repeated_pairs(moments) & ~np.eye(3, dtype=bool)
+    return 0.0 * matrix, jnp.where(off_block, projected, 0.0)
 
 
 # ----------------------------------------------------------------- shapes -> properties

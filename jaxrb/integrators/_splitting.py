@@ -7,9 +7,10 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 from .. import spatial
-from ..inertia import principal_axes
+from ..inertia import principal_axes, repeated_moment_coupling
 from ..state import Params, State
 from ._base import Integrator, whole_number
 from ._composition import kick_drift_kick
@@ -50,6 +51,38 @@ def _rotate_about_principal_axis(pose, k: int, rate):
     return jnp.stack(q + momentum)
 
 
+@jax.custom_jvp
+def _coupled_turn(q, momentum, coupling):
+    """The flow of a zero off-diagonal inverse inertia: ``q`` unchanged, at no cost.
+
+    ``q`` (4,) the attitude (principal frame to world), ``momentum`` (3,) the body momentum
+    ``P`` in the principal frame, ``coupling`` ``(3, 3)`` a sub-flow's duration times the
+    off-diagonal part ``W`` of the inverse inertia in the principal frame (s/(kg m^2)),
+    exactly zero in value (see :func:`jaxrb.inertia.repeated_moment_coupling`). Its flow
+    turns the body at ``W P``: to first order in ``W``, ``q (1, a/2)`` with ``a = coupling
+    P``. So the value is ``q`` itself, and the derivative carries ``d a = d coupling P``
+    (``coupling d P`` is zero). ``P`` turns the opposite way, which a caller that computes
+    ``P`` from ``q`` and the world momentum after the turn gets by the chain rule. Where
+    ``coupling`` is not differentiated the rule adds nothing (a symbolic zero).
+    """
+    del momentum, coupling
+    return q
+
+
+def _coupled_turn_jvp(primals, tangents):
+    q, momentum, _ = primals
+    d_q, _, d_coupling = tangents
+    if type(d_coupling) is SymbolicZero:
+        return q, d_q
+    if type(d_q) is SymbolicZero:
+        d_q = jnp.zeros_like(q)
+    angle = spatial.matvec(d_coupling, momentum)
+    return q, d_q + 0.5 * spatial.quat_multiply(q, jnp.concatenate([jnp.zeros_like(angle[:1]), angle]))
+
+
+_coupled_turn.defjvp(_coupled_turn_jvp, symbolic_zeros=True)
+
+
 def _axes(value):
     """A sequence of axis indices as a tuple of Python ints (a list is not hashable, and
     static fields must hash); anything else unchanged, for the check to refuse."""
@@ -87,15 +120,16 @@ class SymplecticSplitting(Integrator):
       asymmetric top ``I = (1, 2, 3)`` (max 1.5e-7 over 1e5 steps of 0.01 s; the worst
       ordering, 2.6e-5) and the spinning rod ``I = (1e-4, 1, 1 + 5e-5)``,
       ``omega = (100, 1, 0)`` (5e-6 over 10 s at dt = 0.01; the worst, 0.31).
-    * Known limitation of its derivative: where two principal moments are equal (or
-      within ``sqrt(eps)`` of the trace: 1.4e-3 of it in float32), the principal frame's
-      derivative is taken as zero inside the repeated block, so a perturbation of the
-      inertia that breaks the symmetry (an off-diagonal ``I_01`` of a sphere, a cube or
-      an axisymmetric body) gets a zero gradient, where finite differences of this
-      integrator and the derivatives of :class:`RK4` and :class:`ImplicitMidpoint` give
-      the true one. Values are right. Fitting an inertia from a symmetric start with this
-      integrator therefore sees no such direction: fit with ``RK4`` or
-      ``ImplicitMidpoint``, or start from unequal moments.
+    * Derivatives in the inertia at repeated moments (a sphere, a cube, an axisymmetric
+      body; "repeated" within ``sqrt(eps)`` of the trace): the principal axes are not
+      unique there, and :func:`jaxrb.principal_axes` holds them fixed, so a perturbation
+      that breaks the symmetry (``I_01`` of a sphere) would move no axis and get a zero
+      derivative. It appears instead as an off-diagonal inverse inertia ``W`` in the
+      principal frame (:func:`jaxrb.inertia.repeated_moment_coupling`), zero in value,
+      whose flow runs for half a step on either side of the five rotations: the identity
+      in value (no cost in a forward run), and to first order in ``W`` a turn by
+      ``dt/2 W P`` in the derivative. Against central differences of scipy's solution of
+      the flow, the derivatives converge at second order (``tests/test_integrators.py``).
     """
 
     axes: tuple[int, int, int] = eqx.field(default=(0, 1, 2), static=True, converter=_axes)
@@ -110,15 +144,20 @@ class SymplecticSplitting(Integrator):
             )
 
     def precompute(self, params: Params):
-        """Inverse principal moments ``(N, 3)`` (1/(kg m^2), the moments in ascending order)
-        and principal-to-body quaternions ``(N, 4)``.
+        """Inverse principal moments ``(N, 3)`` (1/(kg m^2), the moments in ascending order),
+        principal-to-body quaternions ``(N, 4)``, and the off-diagonal inverse inertia in the
+        principal frame at repeated moments ``(N, 3, 3)`` (zero in value; see
+        :func:`jaxrb.inertia.repeated_moment_coupling`).
 
         Inverted here, once per rollout: a step then multiplies. Divided in the step, reverse
         mode recomputed the three quotients (and their derivatives) at every step, which XLA
         did not hoist out of the backward loop: 3 kernels a step of the ball's gradient.
         """
         moments, axes_matrix = jax.vmap(principal_axes)(params.inertia)
-        return 1.0 / moments, spatial.matrix_to_quat(axes_matrix)
+        inverse = 1.0 / moments
+        # (L + C)^-1 = L^-1 - L^-1 C L^-1 to first order in the coupling C, which is zero.
+        coupling = -inverse[:, :, None] * jax.vmap(repeated_moment_coupling)(params.inertia) * inverse[:, None, :]
+        return inverse, spatial.matrix_to_quat(axes_matrix), coupling
 
     def free_rotation(self, principal_frames, orientation, angular_momentum, dt: float):
         """Torque-free attitude flow over ``dt`` at constant world ``L``; ``(N, 4)``."""
@@ -141,7 +180,7 @@ class SymplecticSplitting(Integrator):
                 # recomputed the chain's shared terms exponentially (each extra rotation
                 # ~5x slower; the vmapped step 20x slower than RK4).
                 pose = jax.lax.optimization_barrier(pose)
-            return pose[:4]
+            return pose
 
         # Unrolled: the axes are static, so each rotation moves two components only. Against
         # the former lax.scan over the five rotations, side by side (benchmarks/README.md):
@@ -152,14 +191,19 @@ class SymplecticSplitting(Integrator):
         # once in the step's recomputation (for the quotient's derivative after it) and
         # again for its own (benchmarks/README.md, "One recomputation of the rotations").
 
-        def rotate(inverse_moments, principal, q, l_world):
+        def rotate(inverse_moments, principal, coupling, q, l_world):
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
-            q = sub_rotations(inverse_moments, q, spatial.quat_rotate_inverse(q, l_world))
+            # The repeated moments' coupling (zero, with a derivative) turns the body for half
+            # the step on either side of the chain: symmetric, so its derivative is second
+            # order too. The momentum is taken after the first turn, which turns it with the
+            # body (the same value: the turn is the identity).
+            q = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * coupling)
+            pose = sub_rotations(inverse_moments, q, spatial.quat_rotate_inverse(q, l_world))
+            q = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * coupling)
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
             return spatial.quat_normalize(q)
 
-        inverse_moments, principal = principal_frames
-        return jax.vmap(rotate)(inverse_moments, principal, orientation, angular_momentum)
+        return jax.vmap(rotate)(*principal_frames, orientation, angular_momentum)
 
     def step(self, scene, params: Params, state: State, dt: float, derived=None) -> State:
         principal_frames = self.precompute(params) if derived is None else derived
