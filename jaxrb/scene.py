@@ -20,7 +20,7 @@ from . import inertia as _inertia
 from . import spatial
 from .forces import AngularDamping, ForceModel, Gravity, LinearDamping
 from .shapes import Plane, Shape
-from .state import Params, State
+from .state import Params, State, body_inertia
 
 __all__ = ["Body", "Scene", "GROUND"]
 
@@ -555,7 +555,7 @@ class Scene:
                 omega_body = self._per_body(
                     "body_angular_velocity", body_angular_velocity, (3,), zeros3, dtype
                 )
-            l_body = spatial.matvec(params.inertia.astype(dtype), omega_body)
+            l_body = spatial.matvec(body_inertia(params).astype(dtype), omega_body)
             l_world = spatial.quat_rotate(orientation, l_body)
         time = jnp.asarray(time, dtype=dtype)
         if time.shape != () or (not _is_traced(time) and not np.isfinite(float(time))):

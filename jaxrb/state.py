@@ -24,6 +24,7 @@ __all__ = [
     "Params",
     "State",
     "rotation_matrix",
+    "body_inertia",
     "inverse_inertia_body",
     "world_inertia",
     "inverse_world_inertia",
@@ -117,9 +118,23 @@ def rotation_matrix(state: State) -> Float[Array, "n 3 3"]:
     return spatial.quat_to_matrix(state.orientation)
 
 
+def body_inertia(params: Params) -> Float[Array, "n 3 3"]:
+    """``I_body`` (kg m^2, body frame, about the centre of mass): ``params.inertia``'s symmetric part.
+
+    Every step reads the inertia through this, so a result depends on the symmetric part
+    alone, and its gradient in ``params.inertia`` is symmetric: a plain gradient step on
+    ``params.inertia`` keeps it symmetric, and every integrator gives the same gradient
+    entry by entry. (Read as it is, ``I^-1`` made RK4's gradient the rank-one ``-a w^T``,
+    and the integrators differed in how they split it between ``I_ij`` and ``I_ji``.) The
+    value of a symmetric ``params.inertia``, which ``Scene.params`` ensures, is unchanged to
+    the last bit.
+    """
+    return 0.5 * (params.inertia + spatial.transpose(params.inertia))
+
+
 def inverse_inertia_body(params: Params) -> Float[Array, "n 3 3"]:
     """``I_body^-1`` (kg^-1 m^-2), by the closed-form 3x3 inverse."""
-    return spatial.inverse3(params.inertia)
+    return spatial.inverse3(body_inertia(params))
 
 
 def _to_world(rot, m_body):
@@ -128,7 +143,7 @@ def _to_world(rot, m_body):
 
 def world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:
     """``I = A I_body A^T`` (seed 000), kg m^2, world frame, about the centre of mass."""
-    return _to_world(rotation_matrix(state), params.inertia)
+    return _to_world(rotation_matrix(state), body_inertia(params))
 
 
 def inverse_world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:

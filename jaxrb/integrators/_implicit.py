@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
-from ..state import Params, State, inverse_inertia_body
+from ..state import Params, State, body_inertia, inverse_inertia_body
 from ._base import Integrator, whole_number
 from ._composition import kick_drift_kick
 
@@ -160,7 +160,7 @@ class ImplicitGyroscopic(Integrator):
             return q, spatial.quat_rotate(q, spatial.matvec(inertia, w))
 
         orientation, angular_momentum = jax.vmap(rotate)(
-            params.inertia, state.orientation, state.angular_momentum, torque
+            body_inertia(params), state.orientation, state.angular_momentum, torque
         )
         velocity = state.velocity + dt * linear_acceleration(params, force)
         return State(
