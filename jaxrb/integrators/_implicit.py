@@ -184,7 +184,9 @@ def cayley_quat(rotation_vector):
     return spatial.quat_normalize(jnp.concatenate([jnp.ones_like(half[..., :1]), half], axis=-1))
 
 
-def midpoint_free_rotation(params: Params, orientation, angular_momentum, dt: float, iterations: int):
+def midpoint_free_rotation(
+    params: Params, orientation, angular_momentum, dt: float, iterations: int, stages: int = 1, safeguard: bool = True
+):
     """Torque-free attitude flow of the Lie-Poisson implicit midpoint rule, ``(N, 4)``.
 
     With body momentum ``P_n = A_n^T L``, solve ``P_m = P_n + dt/2 P_m x I^-1 P_m`` (the
@@ -194,24 +196,49 @@ def midpoint_free_rotation(params: Params, orientation, angular_momentum, dt: fl
     ``P_n + dt P_m x w_m``, so world ``L`` is unchanged (it is not even updated) while
     ``|P|`` and the energy ``P.I^-1 P/2`` are the midpoint rule's quadratic invariants,
     conserved to the Newton tolerance (Austin, Krishnaprasad & Wang 1993).
+
+    At large ``|w| dt`` the quadratic equation can have no real root near ``P_n`` (50
+    Newton iterations, damped or not, failed where 8 did), and the last iterate conserves
+    nothing. So the solve is a continuation in the step size, as in
+    :func:`_backward_euler_rates`: stage ``k`` of ``stages`` solves for ``h_k = dt k /
+    stages`` from the previous stage's root, and with ``safeguard`` the body turns by the
+    last stage that converged, ``cay(h_k I^-1 P_m(h_k))``: an exact midpoint step for
+    ``h_k``, so energy and ``|P|`` stay conserved; its attitude lags by the rest of the
+    step. Stage 0 is ``h = 0`` (no turn). Converged steps give the same values as without
+    ``safeguard``, to the last bit.
     """
-    half = 0.5 * dt
+    eps = jnp.finfo(jnp.asarray(angular_momentum).dtype).eps
 
     def rotate(inverse_inertia, q, l_world):
         momentum = spatial.quat_rotate_inverse(q, l_world)
+        mid, accepted_mid, accepted_h = momentum, momentum, jnp.zeros_like(momentum[0])
+        for k in range(1, stages + 1):  # static and few: each stage is one fori_loop
+            h = dt * k / stages
+            half = 0.5 * h
 
-        def newton(_, mid):
+            def newton(_, mid, half=half):
+                w = spatial.matvec(inverse_inertia, mid)
+                residual = mid - momentum - half * spatial.cross(mid, w)
+                # d/dP (P x I^-1 P) = P~ I^-1 - (I^-1 P)~
+                jacobian = jnp.eye(3, dtype=mid.dtype) - half * (
+                    spatial.matmul(spatial.skew(mid), inverse_inertia) - spatial.skew(w)
+                )
+                return mid - _solve3(jacobian, residual)
+
+            mid = _fixed_iterations(newton, mid, iterations)
             w = spatial.matvec(inverse_inertia, mid)
             residual = mid - momentum - half * spatial.cross(mid, w)
-            # d/dP (P x I^-1 P) = P~ I^-1 - (I^-1 P)~
-            jacobian = jnp.eye(3, dtype=mid.dtype) - half * (
-                spatial.matmul(spatial.skew(mid), inverse_inertia) - spatial.skew(w)
-            )
-            return mid - _solve3(jacobian, residual)
-
-        mid = _fixed_iterations(newton, momentum, iterations)
-        w_mid = spatial.matvec(inverse_inertia, mid)
-        return spatial.quat_normalize(spatial.quat_multiply(q, cayley_quat(dt * w_mid)))
+            # Converged residuals sit at round-off (~1e-16 of the terms' size in float64),
+            # unconverged ones at 1e-3 and above; eps^(3/4) (2e-12; 6.5e-6 in float32) accepts
+            # the few between that stopped short of round-off.
+            size = spatial.safe_norm(momentum) + spatial.safe_norm(mid) * (1.0 + half * spatial.safe_norm(w))
+            converged = spatial.safe_norm(residual) <= eps**0.75 * size
+            accepted_mid = jnp.where(converged, mid, accepted_mid)
+            accepted_h = jnp.where(converged, h, accepted_h)
+        if not safeguard:
+            accepted_mid, accepted_h = mid, dt
+        w_mid = spatial.matvec(inverse_inertia, accepted_mid)
+        return spatial.quat_normalize(spatial.quat_multiply(q, cayley_quat(accepted_h * w_mid)))
 
     return jax.vmap(rotate)(inverse_inertia_body(params), orientation, angular_momentum)
 
@@ -232,22 +259,35 @@ class ImplicitMidpoint(Integrator):
       ``iterations`` 3x3 Newton solves per body.
     * Stability: no step-size limit for the free body as long as Newton converges. With
       the default 8 iterations, from the initial guess ``P_n``, it converged on every one
-      of 2000 random bodies up to ``|w| dt = 2.5``. Beyond that it does not always
-      converge, and nothing reports it: the unconverged iterate is used, and the
-      energy is then not conserved (at ``|w| dt = 3``, 0.25% of those bodies changed
-      their energy by more than 1e-6, the worst 4.6x in one step; at 4, 2.9% and 5.2x).
-      For such steps use :class:`ImplicitGyroscopic`, whose continuation never gains
-      energy, or a smaller step.
+      of 2000 random bodies up to ``|w| dt = 2.5``. Beyond that the midpoint equation
+      can have no root near ``P_n``, and with ``safeguard`` (the default) such a body
+      turns by the root of a shorter step instead (:func:`midpoint_free_rotation`):
+      energy and ``|L|`` stay conserved, the attitude lags. With the default
+      ``stages=1`` the shorter step is no turn at all for that step; ``stages=3`` takes
+      the root for 1/3 or 2/3 of the step where it can (three times the Newton work).
+      Measured on 1000 random bodies, 20 steps each: the fallback is taken on 0 % of
+      steps at ``|w| dt = 2.5``, 0.84 % at 3, 3.2 % at 4 and 11.7 % at 6 with
+      ``stages=1``; 0 %, 0.10 %, 0.27 % and 0.58 % with ``stages=3``; no step changed
+      the energy by more than 3e-12 (relative). The safeguard's own cost, one residual
+      per body and step, was within the timing noise (10,000 steps of one body). Without
+      ``safeguard`` the unconverged iterate is used, and energy is not conserved (at
+      ``|w| dt = 3``, 0.25% of 2000 bodies changed their energy by more than 1e-6, the
+      worst 4.6x in one step; at 4, 2.9% and 5.2x).
     """
 
     iterations: int = eqx.field(default=8, static=True, converter=whole_number)
+    stages: int = eqx.field(default=1, static=True, converter=whole_number)
+    safeguard: bool = eqx.field(default=True, static=True)
     order: ClassVar[int] = 2
 
     def __check_init__(self):
         _check_iterations("ImplicitMidpoint", self.iterations)
+        _check_iterations("ImplicitMidpoint", self.stages, "stages")
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         def rotate(params, orientation, angular_momentum, dt):
-            return midpoint_free_rotation(params, orientation, angular_momentum, dt, self.iterations)
+            return midpoint_free_rotation(
+                params, orientation, angular_momentum, dt, self.iterations, self.stages, self.safeguard
+            )
 
         return kick_drift_kick(scene, params, state, dt, rotate)
