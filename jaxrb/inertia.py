@@ -789,14 +789,18 @@ def check_mass_properties(mass: ArrayLike, inertia: ArrayLike, *, name: str = "b
     if not np.isfinite(m) or m <= 0.0:
         raise ValueError(f"{name}: mass must be positive and finite (kg), got {float(m)}.")
 
-    i = np.asarray(inertia, dtype=np.float64)
+    given = np.asarray(inertia)
+    i = given.astype(np.float64)
     if i.shape != (3, 3):
         raise ValueError(f"{name}: inertia must be a 3x3 matrix (kg m^2), got shape {i.shape}.")
     if not np.all(np.isfinite(i)):
         raise ValueError(f"{name}: inertia contains NaN or infinite entries:\n{i}")
     largest = np.max(np.abs(i))
     asymmetry = np.max(np.abs(i - i.T))
-    if asymmetry > 1e-9 * largest:
+    # Round-off of the input's own precision passes: a float32 R diag(l) R^T is asymmetric
+    # at ~1e-8 of its largest entry. Steps read the symmetric part (state.body_inertia).
+    precision = np.finfo(given.dtype).eps if np.issubdtype(given.dtype, np.floating) else 0.0
+    if asymmetry > max(1e-9, 16 * precision) * largest:
         raise ValueError(
             f"{name}: inertia must be symmetric, but |I - I^T| reaches {asymmetry:.3g} "
             f"(largest entry {largest:.3g}). Use (I + I^T)/2 if the asymmetry is round-off."

@@ -12,6 +12,7 @@ Shapes: body quantities ``(N, 3)``, points ``(N, 3)`` or ``(N, K, 3)`` (K points
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import spatial
@@ -55,6 +56,10 @@ def _per_point(body_array, points):
 
 
 def _offsets(state: State, points_body) -> Float[Array, "..."]:
+    points_body = jnp.asarray(points_body, dtype=state.position.dtype)
+    if points_body.ndim not in (2, 3) or points_body.shape[0] != state.position.shape[0] or points_body.shape[-1] != 3:
+        raise ValueError(f"points_body must be (N, 3) or (N, K, 3) body-frame offsets (m) with N = "
+                         f"{state.position.shape[0]} bodies, got shape {points_body.shape}.")
     rot = rotation_matrix(state)
     rot = rot[:, None] if points_body.ndim == 3 else rot
     return spatial.matvec(rot, points_body)
@@ -65,7 +70,8 @@ def world_points(state: State, points_body) -> Float[Array, "... 3"]:
 
     ``points_body``: ``(N, 3)`` or ``(N, K, 3)`` offsets from the centre of mass, body frame.
     """
-    return _per_point(state.position, points_body) + _offsets(state, points_body)
+    offsets = _offsets(state, points_body)
+    return _per_point(state.position, offsets) + offsets
 
 
 def world_point_velocities(params: Params, state: State, points_body) -> Float[Array, "... 3"]:

@@ -67,8 +67,10 @@ class Body:
             )
         mp = self._resolve()
         mass = float(np.asarray(mp.mass))
+        # Checked in its own precision (float32 round-off passes), stored symmetric in float64.
+        _inertia.check_mass_properties(mass, np.asarray(mp.inertia), name=f"Body {self.name!r}")
         inertia = np.asarray(mp.inertia, dtype=float)
-        _inertia.check_mass_properties(mass, inertia, name=f"Body {self.name!r}")
+        inertia = 0.5 * (inertia + inertia.T)
         com = np.asarray(mp.com, dtype=float)
         object.__setattr__(self, "mass", mass)
         object.__setattr__(self, "inertia", tuple(map(tuple, inertia.tolist())))
@@ -89,7 +91,8 @@ class Body:
                 raise ValueError(
                     f"{where}: an explicit inertia= needs mass= (kg) and no density=."
                 )
-            inertia = np.asarray(self.inertia, dtype=float)
+            inertia = np.asarray(self.inertia)
+            inertia = inertia if np.issubdtype(inertia.dtype, np.floating) else inertia.astype(float)
             if inertia.shape == (3,):
                 inertia = np.diag(inertia)
             if inertia.shape != (3, 3):
@@ -109,8 +112,19 @@ class Body:
 
 
 def _canonical_dtype(dtype):
-    # The default float of the current JAX configuration (float32 unless x64 is on).
-    return jnp.dtype(dtype) if dtype is not None else jnp.zeros(()).dtype
+    """``dtype`` checked, or the default float of the JAX configuration (float32 unless x64 is on)."""
+    if dtype is None:
+        return jnp.zeros(()).dtype
+    dtype = jnp.dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"dtype must be a floating-point type (float32 or float64), got {dtype}: "
+                         "an integer dtype would truncate every value.")
+    if dtype.itemsize == 8 and not jax.config.jax_enable_x64:
+        # JAX would quietly give float32 (with a warning per array).
+        raise ValueError("dtype=float64 needs 64-bit JAX, which is off: call "
+                         "jax.config.update('jax_enable_x64', True) before creating any array, or "
+                         "set JAX_ENABLE_X64=1; or leave dtype out for float32.")
+    return dtype
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,6 +182,13 @@ class Scene:
                     f"Scene.forces must hold force models (rb.LinearDamping(), rb.ExternalWrench(fn), "
                     f"...), got {f!r}."
                 )
+        if any(isinstance(f, Gravity) for f in forces):
+            raise ValueError("Scene.forces holds rb.Gravity(), but gravity is Scene(gravity=...) (on by "
+                             "default): listed as well it would be applied twice. Remove it from forces=.")
+        for model in (LinearDamping, AngularDamping):
+            if sum(isinstance(f, model) for f in forces) > 1:
+                raise ValueError(f"Scene.forces lists rb.{model.__name__}() more than once: each copy "
+                                 f"would apply Params.{model.__name__.lower()[:-7]}_damping again. List it once.")
         object.__setattr__(self, "forces", forces)
         if self.ground is not None and not isinstance(self.ground, Plane):
             raise ValueError(
@@ -273,15 +294,18 @@ class Scene:
             out = np.broadcast_to(default, (n, *trailing))
             return jnp.asarray(out, dtype=dtype)
         if isinstance(value, Mapping):
-            out = np.array(np.broadcast_to(default, (n, *trailing)), dtype=float)
+            # Set entry by entry in JAX, so that a traced value (under jit or grad) passes
+            # through, as in the array form; concrete values are checked here.
+            out = jnp.asarray(np.broadcast_to(default, (n, *trailing)), dtype=dtype)
             for name, v in value.items():
-                v = np.asarray(v, dtype=float)
+                index = self.index(name)
+                v = jnp.asarray(v, dtype=dtype) if _is_traced(v) else np.asarray(v, dtype=float)
                 if v.shape != trailing:
                     raise ValueError(f"{what}[{name!r}] must have shape {trailing}, got {v.shape}.")
-                if not np.all(np.isfinite(v)):
+                if isinstance(v, np.ndarray) and not np.all(np.isfinite(v)):
                     raise ValueError(f"{what}[{name!r}] contains NaN or infinite values: {v!r}.")
-                out[self.index(name)] = v
-            return jnp.asarray(out, dtype=dtype)
+                out = out.at[index].set(jnp.asarray(v, dtype=dtype))
+            return out
         if _is_traced(value):
             arr = jnp.asarray(value, dtype=dtype)
             if arr.shape not in (trailing, (n, *trailing)):
@@ -379,6 +403,12 @@ class Scene:
             # are static, so traced values take the same path as concrete ones.
             if arr.ndim in (1, 2) and arr.shape[-1:] == (3,) and arr.shape != (3, 3):
                 arr = arr[..., None] * xp.eye(3, dtype=arr.dtype).reshape((1,) * (arr.ndim - 1) + (3, 3))
+            if self.num_bodies == 3 and arr.shape == (3, 3) and xp is np and not np.allclose(arr, arr.T):
+                raise ValueError(
+                    "inertia of shape (3, 3) is read as one tensor for every body, and this one is not "
+                    "symmetric. With 3 bodies, give principal moments per body as a dict "
+                    "{name: (I1, I2, I3)} or as (3, 3, 3) tensors (np.stack([np.diag(m) for m in moments]))."
+                )
             inertia_arr = self._per_body("inertia", arr, (3, 3), np.eye(3), dtype)
         if gravity is None:
             g = self.gravity if self.gravity is not None else (0.0, 0.0, 0.0)
@@ -416,9 +446,15 @@ class Scene:
             return jnp.broadcast_to(arr, (p,))
         per_body = {k: v for k, v in value.items() if isinstance(k, str)}
         per_pair = {tuple(k): v for k, v in value.items() if not isinstance(k, str)}
-        for name in per_body:
+        for name, v in per_body.items():
             if name != GROUND:
                 self.index(name)  # raises on unknown names
+            # Checked before they are combined: max(-3, 0) and sqrt(-0.4 * -0.9) would pass.
+            if not _is_traced(v):
+                v = np.asarray(v, dtype=float)
+                low, high = (0.0, 1.0) if what == "restitution" else (0.0, np.inf)
+                if v.shape != () or not np.isfinite(v) or not low <= v <= high:
+                    raise ValueError(f"{what}[{name!r}] must be one number in [{low}, {high}], got {v!r}.")
         for key in per_pair:
             if key not in pairs and key[::-1] not in pairs:
                 raise ValueError(f"{what}: {key!r} is not a contact pair of this scene; pairs are {list(pairs)}.")
@@ -429,7 +465,15 @@ class Scene:
                 continue
             va = jnp.asarray(per_body.get(a, default), dtype=dtype)
             vb = jnp.asarray(per_body.get(b, default), dtype=dtype)
-            out.append(jnp.maximum(va, vb) if what == "restitution" else jnp.sqrt(va * vb))
+            if what == "restitution":
+                out.append(jnp.maximum(va, vb))
+            else:
+                # sqrt(mu_a mu_b), with a zero derivative where the product is 0 (a
+                # frictionless ground): sqrt's derivative there is 1/0, and it made the
+                # gradient in the other body's friction 0 * inf = NaN.
+                product = va * vb
+                positive = product > 0
+                out.append(jnp.where(positive, jnp.sqrt(jnp.where(positive, product, 1.0)), 0.0))
         return jnp.stack(out) if out else jnp.zeros((0,), dtype)
 
     def check_shapes(self, params: Params, fields=None) -> None:

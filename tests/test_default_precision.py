@@ -33,6 +33,14 @@ SCRIPT = textwrap.dedent(
         grads = jax.grad(loss)(params)
         assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
         assert abs(float(grads.linear_damping[0])) > 0
+    # float64 asked for without 64-bit JAX had quietly given float32 (a warning per array).
+    for build in (lambda: scene.params(dtype=jnp.float64), lambda: scene.state(params, dtype=jnp.float64)):
+        try:
+            build()
+        except ValueError as error:
+            assert "jax_enable_x64" in str(error), error
+        else:
+            raise AssertionError("dtype=float64 accepted with x64 disabled")
     print("ok")
     """
 )

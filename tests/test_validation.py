@@ -220,3 +220,89 @@ def test_per_body_dicts_of_mass_and_inertia_are_differentiable_and_checked():
         scene.params(mass={"ball": [1.0, 2.0]})
     with pytest.raises(ValueError, match=r"inertia\['box'\] must be 3 principal moments or a 3x3 tensor"):
         scene.params(inertia={"box": [1.0, 2.0]})
+
+
+def test_per_body_dicts_of_every_field_pass_traced_values():
+    # The {name: value} form of the damping coefficients and of every state field went
+    # through np.asarray, so under jit or grad it failed with a tracer-conversion error.
+    scene = rb.Scene([rb.Body("a", rb.Sphere(0.1), mass=1.0), rb.Body("b", rb.Sphere(0.1), mass=2.0)],
+                     forces=[rb.LinearDamping()])
+    damping = jax.jit(lambda z: scene.params(linear_damping={"b": z}).linear_damping)(0.25)
+    np.testing.assert_array_equal(np.asarray(damping), [0.0, 0.25])
+    position = jax.jit(lambda z: scene.state(position={"a": jnp.stack([z, 0.0, 1.0])}).position)(2.0)
+    np.testing.assert_array_equal(np.asarray(position), [[2.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    # L = I w: the sphere's moment 2/5 m r^2 = 0.004 kg m^2 is the derivative.
+    spin = jax.grad(lambda z: scene.state(angular_velocity={"a": jnp.stack([z, 0.0, 0.0])}).angular_momentum.sum())
+    np.testing.assert_allclose(float(spin(1.0)), 0.004, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"position\['a'\] must have shape \(3,\)"):
+        scene.state(position={"a": (1.0, 2.0)})
+    with pytest.raises(ValueError, match="NaN"):
+        scene.params(linear_damping={"a": float("nan")})
+
+
+def test_gravity_or_a_repeated_damping_among_the_forces_is_refused():
+    # Gravity listed in forces= was applied twice (the scene's gravity is on by default),
+    # and two LinearDamping() doubled the damping: both accepted without a word.
+    with pytest.raises(ValueError, match="applied twice"):
+        scene_of(BALL, forces=[rb.Gravity()])
+    with pytest.raises(ValueError, match=r"rb.LinearDamping\(\) more than once"):
+        scene_of(BALL, forces=[rb.LinearDamping(), rb.LinearDamping()])
+    with pytest.raises(ValueError, match=r"rb.AngularDamping\(\) more than once.*angular_damping"):
+        scene_of(BALL, forces=[rb.AngularDamping(), rb.LinearDamping(), rb.AngularDamping()])
+
+
+def test_an_integer_dtype_is_refused():
+    # It truncated every value: an angular velocity of 0.5 rad/s became an L of 0.
+    with pytest.raises(ValueError, match="floating-point"):
+        scene_of(BALL).params(dtype=jnp.int32)
+    with pytest.raises(ValueError, match="floating-point"):
+        scene_of(BALL).state(angular_velocity=(0.5, 0.0, 0.0), dtype=jnp.int32)
+
+
+def test_per_body_restitution_and_friction_are_checked_and_a_frictionless_ground_has_a_gradient():
+    scene = rb.Scene([rb.Body("ball", rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    # Checked before the rule combines them: max(-3, 0) = 0 and sqrt(-0.4 * -0.9) = 0.6 passed.
+    with pytest.raises(ValueError, match=r"restitution\['ball'\] must be one number in \[0.0, 1.0\]"):
+        scene.params(restitution={"ball": -3.0})
+    with pytest.raises(ValueError, match=r"friction\['ground'\] must be one number"):
+        scene.params(friction={"ball": 0.4, "ground": -0.9})
+    # sqrt(mu_a mu_b) with mu_ground = 0 is 0 for every mu_ball: derivative 0, where sqrt's
+    # derivative 1/0 had made it NaN.
+    grad = jax.grad(lambda m: scene.params(friction={"ball": m, "ground": 0.0}).friction.sum())(0.5)
+    assert float(grad) == 0.0
+    grad = jax.grad(lambda m: scene.params(friction={"ball": m, "ground": 0.5}).friction.sum())(0.5)
+    np.testing.assert_allclose(float(grad), 0.5 * np.sqrt(0.5 / 0.5), rtol=1e-12)
+
+
+def test_float32_round_off_in_an_inertia_passes_and_real_asymmetry_does_not():
+    # R diag(l) R^T in float32 is asymmetric at ~1e-8 of its largest entry, which the fixed
+    # 1e-9 tolerance refused (in Body and in params) though every step reads the
+    # symmetric part.
+    q = rb.spatial.quat_from_axis_angle(jnp.array([1.0, 2.0, 0.5], jnp.float32), jnp.float32(0.7))
+    rotation = rb.spatial.quat_to_matrix(q)
+    tensor = np.asarray(rotation @ jnp.diag(jnp.array([2.0, 3.0, 4.0], jnp.float32)) @ rotation.T)
+    assert tensor.dtype == np.float32 and np.max(np.abs(tensor - tensor.T)) > 1e-9 * 4.0
+    body = rb.Body("box", mass=1.0, inertia=tensor)
+    stored = np.asarray(body.inertia)
+    np.testing.assert_array_equal(stored, stored.T)
+    scene = rb.Scene([body])
+    params = scene.params(inertia=jnp.asarray(tensor), dtype=jnp.float32)
+    assert params.inertia.dtype == jnp.float32
+    with pytest.raises(ValueError, match="symmetric"):
+        rb.Body("box", mass=1.0, inertia=tensor + np.float32(1e-3) * np.triu(np.ones((3, 3), np.float32), 1))
+
+
+def test_an_asymmetric_3x3_inertia_for_three_bodies_says_how_it_was_read():
+    scene = rb.Scene([rb.Body(n, rb.Sphere(0.1), mass=1.0) for n in "abc"])
+    with pytest.raises(ValueError, match=r"read as one tensor.*\(3, 3, 3\)"):
+        scene.params(inertia=[[1.0, 2.0, 2.5], [1.0, 1.0, 1.0], [2.0, 2.0, 3.0]])
+    moments = {"a": (1.0, 2.0, 2.5), "b": (1.0, 1.0, 1.0), "c": (2.0, 2.0, 3.0)}
+    np.testing.assert_array_equal(np.asarray(scene.params(inertia=moments).inertia[0]), np.diag([1.0, 2.0, 2.5]))
+
+
+def test_world_points_take_lists_and_check_their_shape():
+    scene = scene_of(BALL)
+    state = scene.state(position=(1.0, 2.0, 3.0))
+    np.testing.assert_array_equal(np.asarray(rb.kinematics.world_points(state, [[0.0, 0.0, 1.0]])), [[1.0, 2.0, 4.0]])
+    with pytest.raises(ValueError, match=r"points_body must be \(N, 3\) or \(N, K, 3\)"):
+        rb.kinematics.world_points(state, [[0.0, 1.0]])
