@@ -273,6 +273,13 @@ class TradeoffResult:
 
 def _check_common(scene, params, state, t_final, num_compare) -> None:
     ode.check_inputs(scene, params, state, "rb.tradeoff")
+    if scene.contact_pairs:
+        # The reference (ode.solve) has no contacts: it would pass through the ground.
+        raise ValueError(
+            f"rb.tradeoff measures free motion, and this scene has contact pairs {list(scene.contact_pairs)}: "
+            "its reference solution would ignore them. Build the scene without contacts, or compare a "
+            "contact scene's runs with rb.ode.solve_with_impacts yourself."
+        )
     if isinstance(num_compare, bool) or not isinstance(num_compare, int) or num_compare < 1:
         raise ValueError(f"num_compare must be a positive integer, got {num_compare!r}.")
     try:
@@ -300,17 +307,22 @@ def _candidates(integrators) -> list[Integrator]:
     return integrators
 
 
-def _step_counts(dts, duration: float, num_compare: int) -> list[int]:
-    """Steps per run: ``duration / dt`` rounded to a multiple of ``num_compare`` (at least one of each)."""
+def _step_counts(dts, duration: float, num_compare: int, slack: float = 0.0) -> list[int]:
+    """Steps per run: ``duration / dt`` rounded to a multiple of ``num_compare`` (at least one of each).
+
+    ``slack`` (s): the duration's own rounding, below which no ``dt`` counts as changed."""
     if dts is None:
         # A geometric sweep: one step per comparison interval, then halving 7 times.
         return [num_compare * 2**k for k in range(8)]
     counts = []
-    for dt in np.atleast_1d(np.asarray(dts, dtype=float)):
+    dts = np.atleast_1d(np.asarray(dts, dtype=float))
+    if dts.size == 0:
+        raise ValueError("dts is empty; pass None for the default sweep of step sizes.")
+    for dt in dts:
         if not (math.isfinite(dt) and 0 < dt <= duration):
             raise ValueError(f"Every dt must be positive and at most t_final - state.time = {duration} s, got {dt}.")
         n = num_compare * max(1, round(duration / (dt * num_compare)))
-        if abs(duration / n - dt) > 1e-9 * dt:
+        if abs(duration / n - dt) > 1e-9 * dt + slack / n:
             warnings.warn(
                 f"dt = {dt} s does not give a whole number of steps per comparison interval "
                 f"({duration} s / {num_compare} intervals); using dt = {duration / n} s ({n} steps).",
@@ -408,7 +420,9 @@ def tradeoff(
         raise ValueError(f"repeats must be a positive integer, got {repeats!r}.")
     t0 = float(state.time)
     duration = float(t_final) - t0
-    counts = _step_counts(dts, duration, num_compare)
+    # A float32 start time (0.1 -> 0.10000000149) moves the duration by its rounding.
+    slack = 4 * float(np.finfo(np.asarray(state.time).dtype).eps) * abs(t0)
+    counts = _step_counts(dts, duration, num_compare, slack)
     times = comparison_times(state, float(t_final), num_compare)
 
     info: dict[str, Any] = {

@@ -494,6 +494,18 @@ class Scene:
                                  f"(scene.params(...) builds it, also from a per-pair dict).")
             raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.")
 
+    def check_state_shapes(self, state: State) -> None:
+        """Raise ``ValueError`` if a field of ``state`` has the wrong shape for this scene.
+        Shapes only, so it also works on traced values (and per member under vmap)."""
+        n = self.num_bodies
+        expected = {"position": (n, 3), "orientation": (n, 4), "velocity": (n, 3),
+                    "angular_momentum": (n, 3), "time": (), "rotation": (n, 3, 3)}
+        for field, shape in expected.items():
+            value = getattr(state, field)
+            if value is not None and jnp.shape(value) != shape:
+                raise ValueError(f"State.{field} has shape {jnp.shape(value)}; this scene of {n} bodies needs "
+                                 f"{shape}. Build the state with this scene's scene.state(...).")
+
     def check_params(self, params: Params) -> None:
         """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
         self.check_shapes(params)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import numbers
 from collections.abc import Callable
 
 import equinox as eqx
@@ -48,6 +49,7 @@ class Step(eqx.Module):
     def prepare(self, state: State) -> State:
         """Put a state in the form this step carries (idempotent): the integrator's form
         (see Integrator) and, with contacts, the warm-start impulses."""
+        self.scene.check_state_shapes(state)
         state = self.integrator.prepare(state)
         if self.scene.contact_pairs and state.contact_impulse is None:
             state = dataclasses.replace(
@@ -70,6 +72,7 @@ class Step(eqx.Module):
         # Shapes only, so at trace time: params from another scene, or a field changed by
         # Params.replace (which cannot validate), would otherwise broadcast silently.
         self.scene.check_shapes(params)
+        self.scene.check_state_shapes(state)
         if self.scene.contact_pairs:
             new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
         elif derived is None:
@@ -140,6 +143,9 @@ def make_step(
             f"make_step needs an integrator from rb.integrators (e.g. rb.integrators.RK4()), "
             f"got {integrator!r}."
         )
+    if isinstance(dt, jax.core.Tracer):
+        raise ValueError("dt is static (a Python float): it cannot be traced or differentiated, and each "
+                         "new value compiles a new step. Call make_step outside jit/grad/vmap.")
     try:
         dt = float(dt)
     except (TypeError, ValueError):
@@ -500,10 +506,12 @@ def rollout(
         trajectory come from ``jax.vmap``, e.g.
         ``jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, trajectory)``.
     """
-    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
+    # Any integer type (np.int64 from a config array too), as a Python int: they are static.
+    if isinstance(num_steps, bool) or not isinstance(num_steps, numbers.Integral) or num_steps < 1:
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}.")
-    if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 1:
+    if isinstance(save_every, bool) or not isinstance(save_every, numbers.Integral) or save_every < 1:
         raise ValueError(f"save_every must be a positive integer, got {save_every!r}.")
+    num_steps, save_every = int(num_steps), int(save_every)
     if num_steps % save_every:
         raise ValueError(
             f"num_steps ({num_steps}) must be a multiple of save_every ({save_every}); "

@@ -6,6 +6,7 @@ and a time-dependent torque. Float64 (conftest). The sweep is run once per modul
 
 import json
 import math
+import warnings
 
 import jax.numpy as jnp
 import matplotlib
@@ -241,6 +242,20 @@ def test_default_sweep_is_geometric_and_divides():
     with pytest.warns(UserWarning, match="using dt"):
         assert tradeoff._step_counts([0.07], 1.0, 10) == [10]  # 14.3 steps -> 10
     assert tradeoff._step_counts([0.1, 0.1 + 1e-15], 1.0, 10) == [10]
+    # A float32 start time, 0.1 -> 0.10000000149: its rounding is no reason to change dt.
+    t0 = float(np.float32(0.1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tradeoff._step_counts([0.05], 1.1 - t0, 20, slack=4 * float(np.finfo(np.float32).eps) * t0) == [20]
+
+
+def test_a_scene_with_contacts_is_refused():
+    # Its reference (ode.solve, no contacts) fell through the ground: errors of 0.74 m.
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=0.8)
+    state = scene.state(params, position=(0.0, 0.0, 0.15))
+    with pytest.raises(ValueError, match="contact pairs"):
+        tradeoff.tradeoff(scene, params, state, 0.4, integrators=[rb.integrators.SemiImplicitEuler()], dts=[0.01])
 
 
 @pytest.mark.parametrize(
@@ -254,6 +269,7 @@ def test_default_sweep_is_geometric_and_divides():
         ({"integrators": [rb.integrators.RK4]}, "write RK4()"),
         ({"integrators": ["RK4"]}, "rb.integrators instances"),
         ({"integrators": []}, "empty"),
+        ({"dts": []}, "dts is empty"),  # had computed the reference, then returned no rows
         ({"repeats": 0}, "repeats"),
         ({"num_compare": 0}, "num_compare"),
     ],

@@ -306,3 +306,26 @@ def test_world_points_take_lists_and_check_their_shape():
     np.testing.assert_array_equal(np.asarray(rb.kinematics.world_points(state, [[0.0, 0.0, 1.0]])), [[1.0, 2.0, 4.0]])
     with pytest.raises(ValueError, match=r"points_body must be \(N, 3\) or \(N, K, 3\)"):
         rb.kinematics.world_points(state, [[0.0, 1.0]])
+
+
+def test_a_state_for_another_scene_is_refused_by_the_step():
+    # Only params were checked: ExplicitEuler ran a 2-body state on a 1-body scene (the
+    # second body silently used the first's parameters), the others failed inside vmap.
+    one = scene_of(BALL)
+    two = scene_of(BALL, rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
+    params = one.params()
+    for integrator in (rb.integrators.ExplicitEuler(), rb.integrators.RK4()):
+        step = rb.make_step(one, integrator, 1e-2)
+        with pytest.raises(ValueError, match=r"State.position has shape \(2, 3\); this scene of 1 bodies"):
+            rb.rollout(step, params, two.state(), 2)
+        with pytest.raises(ValueError, match="State.position"):
+            step(params, two.state())
+
+
+def test_integer_counts_of_any_type_and_a_traced_dt():
+    scene = scene_of(BALL)
+    step = rb.make_step(scene, rb.integrators.RK4(), 1e-2)
+    final, traj = rb.rollout(step, scene.params(), scene.state(), np.int64(4), save_every=np.int32(2))
+    assert traj.position.shape == (2, 1, 3)  # np.int64(4) had been refused as "not a positive integer"
+    with pytest.raises(ValueError, match="dt is static"):
+        jax.jit(lambda dt: rb.make_step(scene, rb.integrators.RK4(), dt))(0.1)
