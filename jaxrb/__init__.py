@@ -17,7 +17,9 @@ from . import ode as ode
 from . import shapes as shapes
 from . import spatial as spatial
 from ._tradeoff import TradeoffResult as TradeoffResult
+from ._tradeoff import comparison_times as comparison_times
 from ._tradeoff import plot_tradeoff as plot_tradeoff
+from ._tradeoff import reference_solution as reference_solution
 from ._tradeoff import tradeoff as tradeoff
 from .collision import Contact as Contact
 from .collision import collide as collide

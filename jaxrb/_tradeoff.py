@@ -341,7 +341,7 @@ def _reference_trajectory(reference, num_compare: int, times: np.ndarray) -> Sta
         resolution = 4 * float(np.finfo(saved.dtype).eps) * float(np.max(np.abs(times)))
         if saved.shape != times.shape or not np.allclose(saved, times, rtol=0, atol=resolution):
             raise ValueError("The reference was saved at other times than comparison_times(state, t_final, "
-                             f"{num_compare}); build it with jaxrb._tradeoff.reference_solution(...).")
+                             f"{num_compare}); build it with rb.reference_solution(...).")
         return reference.trajectory
     if isinstance(reference, State):
         if reference.position.ndim != 3 or reference.position.shape[0] != num_compare:

@@ -345,7 +345,9 @@ class Scene:
         axis first, or a ``{body_name: value}`` dict overriding some bodies. ``inertia``
         entries may be ``(3,)`` principal moments or ``(3, 3)`` tensors (kg m^2, body
         frame). Values are validated (positive mass, symmetric positive definite inertia
-        obeying the triangle inequality, finite numbers) unless they are traced.
+        obeying the triangle inequality, finite numbers) unless they are traced. ``mass``
+        and ``inertia`` are independent parameters: a new ``mass`` leaves each body's
+        inertia as its ``Body`` gave it (scale it yourself for a uniformly denser body).
 
         ``restitution`` (in ``[0, 1]``, default 0) and ``friction`` (``>= 0``, default 0.5)
         are stored per contact pair (``Params.restitution``, shape ``(P,)`` in
@@ -427,9 +429,7 @@ class Scene:
             restitution=self._per_pair("restitution", restitution, 0.0, dtype),
             friction=self._per_pair("friction", friction, 0.5, dtype),
         )
-        if not _is_traced((params.mass, params.inertia, params.linear_damping, params.angular_damping,
-                           params.restitution, params.friction)):
-            self.check_params(params)
+        self.check_params(params)
         return params
 
     def _per_pair(self, what: str, value, default: float, dtype):
@@ -507,28 +507,34 @@ class Scene:
                                  f"{shape}. Build the state with this scene's scene.state(...).")
 
     def check_params(self, params: Params) -> None:
-        """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical."""
+        """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical.
+
+        Shapes always; values where they are concrete (a traced field, under jit or grad, is
+        skipped, and the others are still checked)."""
         self.check_shapes(params)
-        for i, name in enumerate(self.body_names):
-            _inertia.check_mass_properties(
-                np.asarray(params.mass[i]), np.asarray(params.inertia[i]), name=f"Body {name!r}"
-            )
+        if not _is_traced((params.mass, params.inertia)):
+            for i, name in enumerate(self.body_names):
+                _inertia.check_mass_properties(
+                    np.asarray(params.mass[i]), np.asarray(params.inertia[i]), name=f"Body {name!r}"
+                )
         for field in ("linear_damping", "angular_damping"):
+            if _is_traced(getattr(params, field)):
+                continue
             value = np.asarray(getattr(params, field))
             if not np.all(np.isfinite(value)) or np.any(value < 0):
                 raise ValueError(
                     f"Params.{field} must be finite and non-negative (a negative damping "
                     f"coefficient adds energy), got {value}."
                 )
-        if not np.all(np.isfinite(np.asarray(params.gravity))):
+        if not _is_traced(params.gravity) and not np.all(np.isfinite(np.asarray(params.gravity))):
             raise ValueError(f"Params.gravity must be finite, got {params.gravity}.")
-        e = np.asarray(params.restitution)
-        if not np.all(np.isfinite(e)) or np.any(e < 0) or np.any(e > 1):
+        e = None if _is_traced(params.restitution) else np.asarray(params.restitution)
+        if e is not None and (not np.all(np.isfinite(e)) or np.any(e < 0) or np.any(e > 1)):
             raise ValueError(
                 f"Params.restitution must lie in [0, 1] (0: plastic, 1: elastic; above 1 an impact "
                 f"would create energy), got {e} for pairs {list(self.contact_pairs)}."
             )
-        mu = np.asarray(params.friction)
+        mu = np.zeros(0) if _is_traced(params.friction) else np.asarray(params.friction)
         if not np.all(np.isfinite(mu)) or np.any(mu < 0):
             raise ValueError(
                 f"Params.friction must be finite and >= 0 (Coulomb's coefficient), got {mu} for "

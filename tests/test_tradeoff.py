@@ -309,7 +309,9 @@ def test_precomputed_reference_gives_the_same_rows(sweep):
     (same,) = [r for r in rows_of(result, "RK4") if r["steps"] == row["steps"]]
     for metric in tradeoff.METRICS:
         assert row[metric] == pytest.approx(same[metric], rel=1e-9)
-    with pytest.raises(ValueError, match="saved at other times"):
+    assert rb.reference_solution is tradeoff.reference_solution  # public, as the message says
+    assert rb.comparison_times is tradeoff.comparison_times
+    with pytest.raises(ValueError, match=r"saved at other times.*rb\.reference_solution"):
         tradeoff.tradeoff(scene, params, state, T_FINAL, integrators=[rb.integrators.RK4()], dts=[DTS[2]],
                           reference=precomputed, num_compare=5)
 

@@ -329,3 +329,15 @@ def test_integer_counts_of_any_type_and_a_traced_dt():
     assert traj.position.shape == (2, 1, 3)  # np.int64(4) had been refused as "not a positive integer"
     with pytest.raises(ValueError, match="dt is static"):
         jax.jit(lambda dt: rb.make_step(scene, rb.integrators.RK4(), dt))(0.1)
+
+
+def test_a_traced_field_skips_only_its_own_check():
+    scene = scene_of(BALL)
+    # A traced gravity failed with a tracer-conversion error: it was left out of the
+    # "any field traced" test and then converted with np.asarray.
+    g = jax.jit(lambda g: scene.params(gravity=g).gravity)(jnp.array([0.0, 0.0, -9.81]))
+    np.testing.assert_array_equal(np.asarray(g), [0.0, 0.0, -9.81])
+    assert float(jax.grad(lambda z: scene.params(gravity=jnp.stack([0.0, 0.0, z])).gravity.sum())(-9.81)) == 1.0
+    # One traced field had switched every value check off: a NaN gravity passed.
+    with pytest.raises(ValueError, match="gravity must be finite"):
+        jax.grad(lambda m: scene.params(mass=m, gravity=(0.0, 0.0, float("nan"))).mass.sum())(1.0)
