@@ -223,7 +223,7 @@ def _check_positive(name: str, value) -> None:
         raise ValueError(f"{name} must be a positive, finite tolerance, got {value!r}.")
 
 
-def _check_times(t0, t1, ts) -> None:
+def _check_times(t0, t1, ts, where: str = "rb.ode.solve") -> None:
     """Raise for ``t1 <= t0`` and for save times that are not increasing inside ``[t0, t1]``.
 
     Done in Python when the values are concrete; traced times (a ``jit``/``vmap`` over the
@@ -236,7 +236,7 @@ def _check_times(t0, t1, ts) -> None:
         if t0_value is not None and t0_value.shape == () and not t1_value > t0_value:
             raise ValueError(
                 f"t1 = {float(t1_value)} s must be later than the state's time {float(t0_value)} s: "
-                "rb.ode.solve integrates forward in time."
+                f"{where} integrates forward in time."
             )
     if ts is None:
         return
@@ -329,6 +329,13 @@ def solve(
         not change the order of accuracy.
     """
     check_inputs(scene, params, state, "rb.ode.solve")
+    if scene.contact_pairs:
+        raise ValueError(
+            "rb.ode.solve integrates the equations of motion without contacts, and this scene declares "
+            f"contact pairs {list(scene.contact_pairs)}: its bodies would pass through each other. Use "
+            "rb.ode.solve_with_impacts (impacts located by events, no resting contact), rb.make_step "
+            "(impacts, friction and resting contact), or a Scene without contacts= for the free motion."
+        )
     _check_positive("rtol", rtol)
     _check_positive("atol", atol)
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
@@ -433,7 +440,7 @@ def solve_with_impacts(
     import optimistix as optx
 
     from .contact import ContactSettings
-    from .contact._step import TOUCHING, _Ctx, _impact, _pair_gaps, layout_of
+    from .contact._step import TOUCHING, _Ctx, _pair_gaps, impact_law, layout_of
 
     check_inputs(scene, params, state, "rb.ode.solve_with_impacts")
     if not scene.contact_pairs:
@@ -441,16 +448,12 @@ def solve_with_impacts(
     if isinstance(max_impacts, bool) or not isinstance(max_impacts, int) or max_impacts < 1:
         raise ValueError(f"max_impacts must be a positive integer, got {max_impacts!r}.")
     settings = contact if contact is not None else ContactSettings()
+    if not isinstance(settings, ContactSettings):
+        raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
+    _check_times(jnp.asarray(state.time, state.position.dtype), t1, None, "rb.ode.solve_with_impacts")
     # A margin beyond any distance in the scene: every pair's separation is its true distance
     # (box pairs: the separating axes' lower bound, which has the same roots).
     ctx = _Ctx(scene, layout_of(scene), None, dataclasses.replace(settings, margin=1e6), 1.0)
-    # The collisions give no impulse at all to a slot slower than the threshold: in
-    # make_step the resting-contact solver stops those, but here nothing else would, and
-    # the body would pass through. So a second pass with threshold 0 and e = 0 gives every
-    # slot that still approaches after the first (Newton's law for the faster ones) the
-    # plastic impulse that ContactSettings documents for slow impacts.
-    plastic_ctx = dataclasses.replace(ctx, settings=dataclasses.replace(ctx.settings, restitution_threshold=0.0))
-    plastic_params = params.replace(restitution=jnp.zeros_like(params.restitution))
     dtype = state.position.dtype
     t1 = jnp.asarray(t1, dtype)
     atol = jnp.asarray(atol, dtype)
@@ -486,7 +489,7 @@ def solve_with_impacts(
     def impulse(s: State) -> State:
         y = OdeState.from_state(s)
         _, before = gap_rates(s.time, y)
-        s = _impact(plastic_ctx, plastic_params, _impact(ctx, params, s))
+        s = impact_law(ctx, params, s)  # Newton's law, then plastic for slower slots
         gaps, after = gap_rates(s.time, OdeState.from_state(s))
         # Rounding leaves ~eps of the approach speed; more means the sweeps did not finish.
         tolerance = jnp.sqrt(eps) * jnp.max(jnp.abs(jnp.where(gaps <= TOUCHING, before, 0.0)))

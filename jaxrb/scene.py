@@ -147,7 +147,7 @@ class Scene:
             shapes, plus every such body against the ground. Pairs whose shapes have no
             narrow-phase function are refused when listed and skipped by ``"all"``.
             Resolved once, here; :attr:`contact_pairs` holds the result. Default: none,
-            and then no collision or contact code is compiled.
+            and then no collision or contact code is compiled (``None`` means the same).
     """
 
     bodies: Sequence[Body]
@@ -221,7 +221,7 @@ class Scene:
                 pairs.append((a, b))
             return tuple(pairs)
         pairs = []
-        for pair in contacts:
+        for pair in () if contacts is None else contacts:
             if (not isinstance(pair, (tuple, list)) or len(pair) != 2
                     or not all(isinstance(x, str) for x in pair)):
                 raise ValueError(
@@ -449,6 +449,8 @@ class Scene:
         for name, v in per_body.items():
             if name != GROUND:
                 self.index(name)  # raises on unknown names
+            elif self.ground is None:
+                raise ValueError(f"{what}[{GROUND!r}]: this scene has no ground (pass ground=rb.Plane()).")
             # Checked before they are combined: max(-3, 0) and sqrt(-0.4 * -0.9) would pass.
             if not _is_traced(v):
                 v = np.asarray(v, dtype=float)

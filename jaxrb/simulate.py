@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from ._branch import branch
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
+from .contact._settings import static_step_length
 from .contact._solver import SAVE_NAMED
 from .contact._step import contact_step, far_from_contact, free_step, initial_impulses
 from .integrators import Integrator
@@ -143,15 +144,7 @@ def make_step(
             f"make_step needs an integrator from rb.integrators (e.g. rb.integrators.RK4()), "
             f"got {integrator!r}."
         )
-    if isinstance(dt, jax.core.Tracer):
-        raise ValueError("dt is static (a Python float): it cannot be traced or differentiated, and each "
-                         "new value compiles a new step. Call make_step outside jit/grad/vmap.")
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}.") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive, finite number of seconds, got {dt}.")
+    dt = static_step_length(dt, "make_step")
     if contact is None:
         contact = ContactSettings()
     if not isinstance(contact, ContactSettings):

@@ -9,6 +9,7 @@ threshold is plastic (``e = 0``): the ball stays on the ground.
 
 import jax
 import numpy as np
+import pytest
 
 import jaxrb as rb
 
@@ -87,3 +88,18 @@ def test_short_flights_after_root_finding_are_not_missed():
     np.testing.assert_allclose(np.asarray(sol.impact_times), times, rtol=1e-9)
     np.testing.assert_allclose(np.asarray(sol.after_impact.velocity[:, 0, 2]), e * speeds, rtol=1e-6, atol=1e-9)
     assert_above_ground(sol)
+
+
+def test_a_scene_with_contacts_is_refused_by_the_contact_free_solve_and_bad_input_by_this_one():
+    """rb.ode.solve has no contacts: a ball dropped on the ground there fell through it (z = -3.8 m
+    after 1 s, against a ground at 0.1) without a word. solve_with_impacts refuses an end time not
+    after the start and contact settings of the wrong type."""
+    scene = ball_scene()
+    params = scene.params(restitution=0.8)
+    state = scene.state(params, position=(0, 0, H + R))
+    with pytest.raises(ValueError, match="solve_with_impacts"):
+        rb.ode.solve(scene, params, state, 1.0)
+    with pytest.raises(ValueError, match="later than the state's time"):
+        rb.ode.solve_with_impacts(scene, params, state, 0.0)
+    with pytest.raises(ValueError, match="rb.ContactSettings"):
+        rb.ode.solve_with_impacts(scene, params, state, 1.0, contact="pgs")

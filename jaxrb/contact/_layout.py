@@ -53,6 +53,10 @@ class Layout:
         pair: ``(C,)`` index of each slot's contact pair (for its coefficients).
         colours: ``(num_colours, width)`` slot indices, ``C`` marking padding; no two
             real slots of one colour share a dynamic body.
+        pair_colours: ``(num_pair_colours, pairs, K)`` slot indices of the pairs (each
+            pair's ``K`` slots in a row, ``K`` the most of any pair), ``C`` marking
+            padding; no two pairs of one colour share a dynamic body. The impact pass
+            visits the pairs in this order (:func:`jaxrb.contact._solver.collisions`).
     """
 
     num_bodies: int
@@ -61,6 +65,7 @@ class Layout:
     body_b: tuple[int, ...]
     pair: tuple[int, ...]
     colours: tuple[tuple[int, ...], ...]
+    pair_colours: tuple[tuple[tuple[int, ...], ...], ...]
 
     @property
     def num_slots(self) -> int:
@@ -155,7 +160,26 @@ def build_layout(scene: Scene) -> Layout:
     colours = _colour(body_a, body_b, pair, n)
     width = max((len(c) for c in colours), default=0)
     padded = tuple(tuple(c + [len(body_a)] * (width - len(c))) for c in colours)
-    return Layout(n, tuple(groups), tuple(body_a), tuple(body_b), tuple(pair), padded)
+    return Layout(n, tuple(groups), tuple(body_a), tuple(body_b), tuple(pair), padded,
+                  _pair_colours(body_a, body_b, pair, n))
+
+
+def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:
+    """:attr:`Layout.pair_colours`: the pairs coloured greedily (in pair order), padded."""
+    slots: dict[int, list[int]] = {}
+    for slot, p in enumerate(pair):
+        slots.setdefault(p, []).append(slot)
+    if not slots:
+        return ()
+    pairs = sorted(slots)
+    first = [slots[p][0] for p in pairs]
+    colours = _greedy_colouring([body_a[s] for s in first], [body_b[s] for s in first], num_bodies,
+                                range(len(pairs)))
+    width = max(len(c) for c in colours)
+    depth = max(len(v) for v in slots.values())
+    pad = len(pair)
+    padded_slots = [slots[p] + [pad] * (depth - len(slots[p])) for p in pairs]
+    return tuple(tuple(tuple(padded_slots[i]) for i in c) + ((pad,) * depth,) * (width - len(c)) for c in colours)
 
 
 def slot_values(layout: Layout, per_pair: jax.Array) -> jax.Array:

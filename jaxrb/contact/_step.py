@@ -6,8 +6,10 @@ One step of length ``h`` from state ``s`` (all bodies at once):
 2. **Solve.** Contacts are detected at the start pose (slots closer than ``margin``).
    Projected Gauss-Seidel finds impulses so that every active slot's normal velocity
    ``u_n`` after them is at least its target: ``-gap/h`` ahead of contact (speculative:
-   it may close the gap but not pass it), ``0`` in contact, ``-e u_n^-`` at an impact
-   faster than the restitution threshold; friction inside Coulomb's cone.
+   it may close the gap but not pass it) and ``0`` in contact; friction inside Coulomb's
+   cone. Before it, impacts faster than the restitution threshold get Newton's law,
+   ``u_n^+ = -e u_n^-`` (``_solver.collisions``: pair after pair, all slots of a pair at
+   once).
 3. **Drift.** The scene's integrator advances the *force-free* motion by ``h`` with those
    velocities: ``x <- x + h v`` and its torque-free attitude flow under the new ``L``
    (the splitting's exact sub-rotations, RK4's stages, ... whichever was chosen). The
@@ -33,28 +35,32 @@ same roots as the distance and cost a fraction of the manifold), bracketed by th
 ends, found by a fixed number of Illinois (regula falsi) iterations and a last secant step;
 its derivative is the implicit-function theorem's, ``d tau = -dD / D'`` (a custom JVP):
 gradients account for the time of impact. Other impacts in the same step are handled at
-its start.
+its start, and so is a pair of bodies that is apart at both ends of the flight but whose
+bounding spheres meet in between (a fast, small body passing another: ``_meeting_mid_step``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
 from .._branch import branch
-from .._indexing import literal_array
+from .._indexing import literal_array, take_rows
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
-from ..scene import Scene
+from ..scene import GROUND, Scene
+from ..shapes import Box, Capsule, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
 from ._layout import Layout, build_layout, detect, pair_separations, slot_values
 from ._lcp import solve_exact
-from ._settings import ContactSettings
+from ._settings import ContactSettings, static_step_length
 from ._solver import (
     SAVE_NAMED,
     SEPARATIONS,
@@ -192,7 +198,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     f = frames(start, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(ctx, params)
     gap = contact.gap
-    colours = literal_array(layout.colours)
+    colours, pair_colours = literal_array(layout.colours), literal_array(layout.pair_colours)
     # Impacts first, at the start of the step, on the velocities there: slots that touch or
     # would close during the step (at the kicked velocity) collide by Newton's law if they
     # approach faster than the threshold. (Not in the part of a split step before its
@@ -205,7 +211,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     # when no member has such a slot: ``_branch``).
     hit = branch(
         jnp.any(closing & (u_start < -settings.restitution_threshold)),
-        jax.checkpoint(lambda b: collisions(b, f, colours, e, mu, closing, settings.restitution_threshold,
+        jax.checkpoint(lambda b: collisions(b, f, colours, pair_colours, e, mu, closing, settings.restitution_threshold,
                                             settings.impact_iterations)[0]),
         lambda b: b, start)
     velocity = hit.velocity[: scene.num_bodies] + kick_v
@@ -227,7 +233,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     # 3-box stack's 100-step gradient (the correction active) within noise in compile and
     # run time, with the same gradient to the last digit. Its solution is not saved by
     # name (see _solver._pgs_jvp): reverse mode runs these few sweeps again.
-    depth = jnp.maximum(-gap - settings.penetration_slop, 0.0)
+    depth = jnp.maximum(-gap - settings.correction_slop, 0.0)
     push = contact.active & (depth > 0)
     still = dataclasses.replace(bodies, velocity=jnp.zeros_like(bodies.velocity),
                                 angular_velocity=jnp.zeros_like(bodies.angular_velocity))
@@ -235,7 +241,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     def correct(still):
         return solve(still, f, literal_array(layout.colours),
                      settings.position_correction * depth / h, jnp.zeros_like(mu), push,
-                     jnp.zeros_like(lam0), settings.position_iterations, friction=False,
+                     jnp.zeros_like(lam0), settings.position_iterations, normal_only=True,
                      tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)[0]
 
     # Skipped where nothing is deeper than the slop (an impact from flight, most resting
@@ -292,13 +298,31 @@ def resolve_impacts(scene: Scene, params: Params, state: State, settings: Contac
     """Newton's impact law at an instant: the velocity jump of every touching, approaching slot.
 
     Positions are unchanged. Slots within ``1e-4`` m that approach faster than the
-    restitution threshold collide in sequence (see ``collisions``), each with the impulse
-    of seed 000, ``j = -(1 + e) u_n / (n . K n)``, and friction bounded by ``mu j``.
-    ``dt`` only sets the default detection margin.
+    restitution threshold collide, pair after pair (see ``collisions``): a pair touching at
+    one slot with the impulse of seed 000, ``j = -(1 + e) u_n / (n . K n)``, and friction
+    bounded by ``mu j``; one touching at several (a box landing flat) on all of them at
+    once, so that it rebounds at ``-e`` times its approach without turning. Slots
+    that still approach after that (slower than the threshold) get the plastic impulse
+    (``e = 0``) that :class:`ContactSettings` documents for slow impacts, so every touching
+    slot ends separating or at rest. ``dt`` (s) only sets the default detection margin.
     """
+    if not scene.contact_pairs:
+        raise ValueError("resolve_impacts needs a scene with contact pairs (Scene(..., contacts=...)).")
     settings = ContactSettings() if settings is None else settings
-    ctx = _Ctx(scene, layout_of(scene), None, settings, dt)
-    return _impact(ctx, params, state)
+    if not isinstance(settings, ContactSettings):
+        raise ValueError(f"settings must be an rb.ContactSettings(...), got {settings!r}.")
+    dt = static_step_length(dt, "resolve_impacts")
+    return impact_law(_Ctx(scene, layout_of(scene), None, settings, dt), params, state)
+
+
+def impact_law(ctx: _Ctx, params: Params, state: State) -> State:
+    """:func:`_impact` (Newton's law for slots faster than the threshold), then a second pass
+    with threshold 0 and ``e = 0``: the plastic impulse for every touching slot that still
+    approaches. (In a step the resting-contact solve stops those; at an instant nothing else
+    would, and the bodies would pass through.)"""
+    plastic = dataclasses.replace(ctx, settings=dataclasses.replace(ctx.settings, restitution_threshold=0.0))
+    return _impact(plastic, params.replace(restitution=jnp.zeros_like(params.restitution)),
+                   _impact(ctx, params, state))
 
 
 def _impact(ctx: _Ctx, params: Params, state: State) -> State:
@@ -308,9 +332,9 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(ctx, params)
     touching = contact.active & (contact.gap <= TOUCHING)
-    colours = literal_array(layout.colours)
-    solved, _ = collisions(bodies, f, colours, e, mu, touching, settings.restitution_threshold,
-                           settings.impact_iterations)
+    solved, _ = collisions(bodies, f, literal_array(layout.colours), literal_array(layout.pair_colours), e, mu,
+                           touching,
+                           settings.restitution_threshold, settings.impact_iterations)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
                                   state.angular_momentum)
     return dataclasses.replace(state, velocity=solved.velocity[: scene.num_bodies], angular_momentum=momentum)
@@ -437,7 +461,62 @@ def _branch_test(ctx: _Ctx, params: Params, state: State):
     far = jnp.all(start_sep >= _touching_distance(settings, ctx.margin))
     if candidate is not None:
         far = far & ~jnp.any(candidate)
+        meeting = _meeting_mid_step(ctx, frozen_state, flight[0], end_sep)
+        if meeting is not None:
+            far = far & ~jnp.any(meeting)
     return far, start_sep, end_sep, candidate
+
+
+def _bounding_radius(scene: Scene, name: str) -> float:
+    """m: the radius of a sphere about the body's centre of mass that holds its shape."""
+    body = scene.bodies[scene.index(name)]
+    shape = body.shape
+    if isinstance(shape, Sphere):
+        reach = shape.radius
+    elif isinstance(shape, Box):
+        reach = math.hypot(*shape.half_extents)
+    elif isinstance(shape, Capsule):
+        reach = shape.radius + shape.half_length
+    else:  # not reached: contact pairs hold the shapes above (and the ground) only
+        raise ValueError(f"No bounding radius for {type(shape).__name__}.")
+    return reach + math.hypot(*body.shape_offset)
+
+
+def _meeting_mid_step(ctx: _Ctx, state: State, acceleration, end_sep):
+    """Body pairs apart at the end of the step's free flight whose bounding spheres meet
+    during it ``(P,)`` (``None`` if the scene has no body-body pair).
+
+    The search brackets an impact between the step's two ends, so a pair that passes
+    through another within the step (apart at both ends: a fast, small body) was missed,
+    and went through. Such a pair makes the step a contact step, whose impact pass
+    treats it as closing (Newton's law at the step's start, as without the search). The
+    test: the closest approach of the centres of mass over ``[0, dt]`` along their
+    relative straight-line motion, less what their relative acceleration can bend it
+    (``|da| dt^2 / 2``), against the sum of the bounding radii. Rotation moves no point of
+    a body out of its sphere. Pairs with the ground are left out: the gap of a body that
+    translates with gravity pointing into the ground is concave in time, so it is lowest
+    at an end of the step (a corner of a body spinning through the ground within one step
+    is not covered).
+    """
+    scene = ctx.scene
+    pairs = [(i, scene.index(a), scene.index(b), _bounding_radius(scene, a) + _bounding_radius(scene, b))
+             for i, (a, b) in enumerate(scene.contact_pairs) if b != GROUND]
+    if not pairs:
+        return None
+    index, body_a, body_b, reach = (np.asarray(x) for x in zip(*pairs, strict=True))
+    dtype = state.position.dtype
+    dx = take_rows(state.position, body_a) - take_rows(state.position, body_b)
+    dv = take_rows(state.velocity, body_a) - take_rows(state.velocity, body_b)
+    da = take_rows(acceleration, body_a) - take_rows(acceleration, body_b)
+    speed2 = jnp.sum(dv * dv, -1)
+    moving = speed2 > 0
+    t = jnp.clip(-jnp.sum(dx * dv, -1) / jnp.where(moving, speed2, 1.0), 0.0, ctx.dt)
+    closest = jnp.linalg.norm(dx + t[:, None] * dv, axis=-1) - 0.5 * ctx.dt**2 * jnp.linalg.norm(da, axis=-1)
+    meets = jnp.concatenate([moving & (closest < literal_array(reach, dtype)), jnp.zeros(1, bool)])
+    # In pair order, ground pairs reading the appended False (static slices: jaxrb._indexing).
+    row = np.full(ctx.scene.num_contact_pairs, len(index))
+    row[index] = np.arange(len(index))
+    return take_rows(meets, row) & (end_sep >= 0)
 
 
 def far_from_contact(scene: Scene, settings: ContactSettings, dt: float, params: Params, state: State) -> jax.Array:
