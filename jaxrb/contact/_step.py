@@ -333,8 +333,7 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
     e, mu = _slot_coefficients(ctx, params)
     touching = contact.active & (contact.gap <= TOUCHING)
     solved, _ = collisions(bodies, f, literal_array(layout.colours), literal_array(layout.pair_colours), e, mu,
-                           touching,
-                           settings.restitution_threshold, settings.impact_iterations)
+                           touching, settings.restitution_threshold, settings.impact_iterations)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
                                   state.angular_momentum)
     return dataclasses.replace(state, velocity=solved.velocity[: scene.num_bodies], angular_momentum=momentum)
