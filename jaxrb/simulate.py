@@ -19,6 +19,7 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import numpy as np
 
 from ._branch import branch
 from .contact import ContactSettings
@@ -145,12 +146,22 @@ def make_step(
             f"got {integrator!r}."
         )
     dt = static_step_length(dt, "make_step")
+    debug = static_switch("debug", debug)
     if contact is None:
         contact = ContactSettings()
     if not isinstance(contact, ContactSettings):
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
     return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact,
                 max_penetration=_penetration_limit(scene, debug, max_penetration))
+
+
+def static_switch(name: str, value) -> bool:
+    """``value`` as a Python bool, or a ``ValueError``: a static switch takes ``True`` or
+    ``False`` (numpy's too), not any value Python would call true (``"no"`` is), nor a JAX
+    array (it would be traced inside the rollout's jit)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False (a static switch), got {value!r}.")
+    return bool(value)
 
 
 def _penetration_limit(scene: Scene, debug: bool, max_penetration) -> float:
@@ -505,6 +516,8 @@ def rollout(
     if isinstance(save_every, bool) or not isinstance(save_every, numbers.Integral) or save_every < 1:
         raise ValueError(f"save_every must be a positive integer, got {save_every!r}.")
     num_steps, save_every = int(num_steps), int(save_every)
+    checkpoint = static_switch("checkpoint", checkpoint)
+    include_initial = static_switch("include_initial", include_initial)
     if num_steps % save_every:
         raise ValueError(
             f"num_steps ({num_steps}) must be a multiple of save_every ({save_every}); "

@@ -832,6 +832,22 @@ def test_bad_inputs_fail_early():
         collision.collide(sphere, np.zeros(3), IDENTITY, sphere, np.zeros(3), IDENTITY, margin=-0.1)
 
 
+def test_a_non_unit_quaternion_is_refused():
+    """The pair functions read a pose's rotation from a unit quaternion's formula. A box
+    posed with ``(1, 1, 0, 0)`` had been stretched by sqrt(5) across two of its axes, and
+    ``(0, 0, 0, 0)`` or ``(0.5, 0, 0, 0)`` taken as the identity, without a word."""
+    box, plane = Box((0.1, 0.2, 0.3)), Plane()
+    for q in ((1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (0.5, 0.0, 0.0, 0.0)):
+        with pytest.raises(ValueError, match="orientation_a is not a unit quaternion"):
+            collision.collide(box, np.zeros(3), np.asarray(q), plane)
+        with pytest.raises(ValueError, match="orientation_b is not a unit quaternion"):
+            collision.collide(plane, None, None, box, np.zeros(3), np.asarray(q))
+    # Rounding passes (four decimals), and so does a traced pose, which cannot be checked.
+    c = collision.collide(box, np.array([0.0, 0.0, 0.25]), np.array([0.7071, 0.7071, 0.0, 0.0]), plane)
+    assert np.all(np.isfinite(c.gap))
+    jax.jit(lambda q: collision.collide(box, np.zeros(3), q, plane).gap)(jnp.asarray(IDENTITY))
+
+
 def test_flip_and_concatenate():
     (pa, qa, pb, qb), _ = sampled_cases("capsule", "rod")
     c1 = jax.tree_util.tree_map(lambda x: x[0], run("capsule", "rod", pa[:1], qa[:1], pb[:1], qb[:1]))

@@ -179,6 +179,24 @@ def test_invalid_steps_and_rollouts():
             rb.rollout(step, params, state, n)
 
 
+def test_switches_must_be_true_or_false():
+    """``checkpoint``, ``include_initial`` and ``debug`` are static switches. A string such as
+    ``"no"`` had counted as true (the rollout checkpointed, the step ran the debug checks),
+    and a JAX array failed inside the rollout's jit with a tracer error."""
+    scene = scene_of(BALL)
+    params, state = scene.params(), scene.state()
+    step = rb.make_step(scene, rb.integrators.RK4(), 1e-3)
+    for name in ("checkpoint", "include_initial"):
+        for value in ("no", 1, None, jnp.asarray(True)):
+            with pytest.raises(ValueError, match=f"{name} must be True or False"):
+                rb.rollout(step, params, state, 2, **{name: value})
+        rb.rollout(step, params, state, 2, **{name: np.bool_(True)})  # numpy's bool passes
+    for value in ("no", 0, jnp.asarray(False)):
+        with pytest.raises(ValueError, match="debug must be True or False"):
+            rb.make_step(scene, rb.integrators.RK4(), 1e-3, debug=value)
+    assert rb.make_step(scene, rb.integrators.RK4(), 1e-3, debug=np.bool_(True)).debug is True
+
+
 def test_user_force_function_with_wrong_shape():
     def wrong(t, params, state):
         return jnp.zeros(3), jnp.zeros(3)  # forgot the body axis

@@ -17,6 +17,7 @@ from ..shapes import Box, Capsule, Plane, Shape, Sphere
 from ._box import box_box
 from ._capsule import capsule_capsule
 from ._contact import Contact
+from ._geometry import check_unit_quaternion
 from ._plane import box_plane, capsule_plane, sphere_plane
 from ._sphere import sphere_box, sphere_capsule, sphere_sphere
 
@@ -95,7 +96,8 @@ def collide(
         position_a, position_b: ``(3,)`` m, world frame, the centre of each shape's own
             frame (ignored, may be ``None``, for a plane).
         orientation_a, orientation_b: ``(4,)`` unit quaternions, scalar first, shape frame
-            to world (ignored, may be ``None``, for a plane).
+            to world (ignored, may be ``None``, for a plane). A concrete one whose norm is
+            not 1 (to 1e-3) is refused.
         margin: m, ``>= 0``. Slots with ``gap < margin`` are active, so contacts about to
             happen are reported before the shapes touch.
 
@@ -105,9 +107,16 @@ def collide(
 
     Raises:
         ValueError: the pair is not supported (the message lists the supported pairs), a
-            pose has the wrong shape, or a static margin is negative.
+            pose has the wrong shape, a concrete orientation is not a unit quaternion, or a
+            static margin is negative.
     """
     function, _, reverse = _lookup(_as_type(shape_a), _as_type(shape_b))
+    # Checked here too, under the caller's names (the pair function sees A and B swapped
+    # when ``reverse``).
+    for shape, label, orientation in ((shape_a, "orientation_a", orientation_a),
+                                      (shape_b, "orientation_b", orientation_b)):
+        if not isinstance(shape, Plane):
+            check_unit_quaternion(label, orientation)
     if reverse:
         return function(shape_b, position_b, orientation_b, shape_a, position_a, orientation_a, margin).flip()
     return function(shape_a, position_a, orientation_a, shape_b, position_b, orientation_b, margin)
