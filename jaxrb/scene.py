@@ -596,15 +596,11 @@ class Scene:
         velocity = self._per_body("velocity", velocity, (3,), zeros3, dtype)
         orientation = self._per_body("orientation", orientation, (4,), np.array([1.0, 0, 0, 0]), dtype)
         if not _is_traced(orientation):
-            norms = np.linalg.norm(np.asarray(orientation, dtype=float), axis=-1)
-            bad = np.abs(norms - 1.0) > 1e-3
+            norms, bad = spatial.non_unit_norms(orientation)
             if np.any(bad):
                 names = [self.body_names[i] for i in np.flatnonzero(bad)]
-                raise ValueError(
-                    f"orientation of {names} is not a unit quaternion (norms {norms[bad]}). Pass "
-                    "(w, x, y, z), scalar first, with norm 1, e.g. from rb.spatial.quat_from_axis_angle "
-                    "or rb.spatial.quat_normalize."
-                )
+                raise ValueError(f"orientation of {names} is not a unit quaternion (norms {norms[bad]}). "
+                                 + spatial.UNIT_QUATERNION_ADVICE)
         orientation = spatial.quat_normalize(orientation)
         if angular_momentum is not None:
             l_world = self._per_body("angular_momentum", angular_momentum, (3,), zeros3, dtype)

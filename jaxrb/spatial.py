@@ -229,6 +229,19 @@ def quat_conjugate(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     return jnp.stack([w, -x, -y, -z], axis=-1)
 
 
+def non_unit_norms(q) -> tuple[np.ndarray, np.ndarray]:
+    """The norms of concrete quaternions ``(..., 4)`` given as input, and which of them are
+    not 1 to 1e-3 (NumPy, for input checks: rounded decimals such as 0.7071 pass; the
+    pose is read with the unit quaternion's formula, so any other norm distorts it)."""
+    norms = np.linalg.norm(np.asarray(q, dtype=float), axis=-1)
+    return norms, ~(np.abs(norms - 1.0) <= 1e-3)
+
+
+#: What the error for a non-unit input quaternion advises.
+UNIT_QUATERNION_ADVICE = ("Pass (w, x, y, z), scalar first, with norm 1, e.g. from "
+                          "rb.spatial.quat_from_axis_angle or rb.spatial.quat_normalize.")
+
+
 @jax.custom_jvp
 def quat_normalize(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """Project onto the unit sphere. A zero quaternion becomes the identity; NaN stays NaN.

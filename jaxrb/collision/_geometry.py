@@ -38,19 +38,17 @@ def pose(name: str, position: ArrayLike, orientation: ArrayLike) -> tuple[Array,
 
 
 def check_unit_quaternion(label: str, orientation) -> None:
-    """Refuse a concrete quaternion whose norm is not 1 (to 1e-3, as ``Scene.state`` does):
-    the rotation is read from it by the unit quaternion's formula, which for any other
-    norm stretches the shape (``(1, 1, 0, 0)``: by sqrt(5) across two axes) or gives no
-    rotation at all (``(0.5, 0, 0, 0)``). A traced one passes (a simulation keeps its
-    attitudes normalised)."""
+    """Refuse a concrete quaternion whose norm is not 1 (:func:`jaxrb.spatial.non_unit_norms`,
+    as ``Scene.state`` does): the rotation is read from it by the unit quaternion's
+    formula, which for any other norm stretches the shape (``(1, 1, 0, 0)``: by sqrt(5)
+    across two axes) or gives no rotation at all (``(0.5, 0, 0, 0)``). A traced one passes
+    (a simulation keeps its attitudes normalised)."""
     if orientation is None or isinstance(orientation, jax.core.Tracer) or np.shape(orientation) != (4,):
         return  # (a wrong shape is :func:`pose`'s to report)
-    norm = float(np.linalg.norm(np.asarray(orientation, dtype=float)))
-    if not abs(norm - 1.0) <= 1e-3:
-        raise ValueError(
-            f"{label} is not a unit quaternion (norm {norm:.6g}). Pass (w, x, y, z), scalar first, "
-            "with norm 1, e.g. from rb.spatial.quat_from_axis_angle or rb.spatial.quat_normalize."
-        )
+    norm, bad = spatial.non_unit_norms(orientation)
+    if bad:
+        raise ValueError(f"{label} is not a unit quaternion (norm {float(norm):.6g}). "
+                         + spatial.UNIT_QUATERNION_ADVICE)
 
 
 def float_dtype(*arrays: Array):
