@@ -19,12 +19,11 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
-import numpy as np
 
 from ._branch import branch
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
-from .contact._settings import static_step_length
+from .contact._settings import static_step_length, static_switch
 from .contact._solver import SAVE_NAMED
 from .contact._step import contact_step, far_from_contact, free_step, initial_impulses
 from .integrators import Integrator
@@ -153,15 +152,6 @@ def make_step(
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
     return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact,
                 max_penetration=_penetration_limit(scene, debug, max_penetration))
-
-
-def static_switch(name: str, value) -> bool:
-    """``value`` as a Python bool, or a ``ValueError``: a static switch takes ``True`` or
-    ``False`` (numpy's too), not any value Python would call true (``"no"`` is), nor a JAX
-    array (it would be traced inside the rollout's jit)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be True or False (a static switch), got {value!r}.")
-    return bool(value)
 
 
 def _penetration_limit(scene: Scene, debug: bool, max_penetration) -> float:

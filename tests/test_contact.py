@@ -179,7 +179,8 @@ def test_coefficients_of_the_wrong_shape_are_refused_by_the_step():
     ("kwargs", "message"),
     [({"solver": "lemke"}, "'pgs' or 'exact'"), ({"iterations": 0}, "positive integer"),
      ({"margin": -1.0}, ">= 0"), ({"position_correction": 2.0}, r"\[0, 1\]"),
-     ({"warm_start": 1}, "True or False"), ({"tolerance": -1e-6}, ">= 0"),
+     ({"warm_start": 1}, "warm_start must be True or False"),
+     ({"time_of_impact": "no"}, "time_of_impact must be True or False"), ({"tolerance": -1e-6}, ">= 0"),
      ({"restitution_threshold": True}, ">= 0"), ({"iterations": 5.0}, "positive integer")],
 )
 def test_bad_contact_settings_are_refused(kwargs, message):
@@ -195,6 +196,10 @@ def test_contact_settings_take_integers_of_any_type_and_contacts_none_means_none
     settings = rb.ContactSettings(iterations=np.int64(5), position_iterations=np.int32(3))
     assert (settings.iterations, settings.position_iterations) == (5, 3)
     assert type(settings.iterations) is int
+    # numpy's bools are switches too, as rollout's are (they had been refused), kept as bools
+    settings = rb.ContactSettings(warm_start=np.bool_(False), time_of_impact=np.bool_(True))
+    assert settings.warm_start is False and settings.time_of_impact is True
+    assert settings == rb.ContactSettings(warm_start=False)
     ball = rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)
     assert rb.Scene([ball], contacts=None).contact_pairs == ()
     with pytest.raises(ValueError, match="no ground"):

@@ -9,7 +9,7 @@ import numbers
 import jax
 import numpy as np
 
-__all__ = ["ContactSettings", "static_step_length"]
+__all__ = ["ContactSettings", "static_step_length", "static_switch"]
 
 #: m/s: the approach speed the default margin covers in one step.
 DEFAULT_MARGIN_SPEED = 10.0
@@ -39,6 +39,15 @@ def static_step_length(dt, where: str) -> float:
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive, finite number of seconds, got {dt}.")
     return dt
+
+
+def static_switch(name: str, value) -> bool:
+    """``value`` as a Python bool, or a ``ValueError``: a static switch takes ``True`` or
+    ``False`` (numpy's too), not any value Python would call true (``"no"`` is), nor a JAX
+    array (it would be traced inside the rollout's jit)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False (a static switch), got {value!r}.")
+    return bool(value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,8 +131,8 @@ class ContactSettings:
         if self.tolerance is not None:
             _check("tolerance", self.tolerance)
         _check("position_correction", self.position_correction, unit=True)
-        if not isinstance(self.warm_start, bool) or not isinstance(self.time_of_impact, bool):
-            raise ValueError("ContactSettings.warm_start and time_of_impact must be True or False.")
+        for name in ("warm_start", "time_of_impact"):  # np.True_ too, stored as a Python bool
+            object.__setattr__(self, name, static_switch(f"ContactSettings.{name}", getattr(self, name)))
 
     def tolerance_for(self, dtype) -> float:
         """The sweeps' relative tolerance for states of ``dtype``."""
