@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 
 def cpu_model() -> str:
     """The CPU's model name from /proc/cpuinfo, else what ``platform`` knows."""
@@ -111,3 +113,27 @@ def timed(fn, args, repeats: int) -> float:
         jax.block_until_ready(fn(*args))
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def _jsonable(x):
+    """JSON's value for what ``json`` cannot write itself: numpy and JAX scalars as numbers
+    (bools as bools), anything else (a dtype, a path) as its string."""
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return str(x)
+
+
+def write_results(out: Path, name: str, record: dict, plot=None) -> None:
+    """Write ``record`` to ``out/<name>.json`` and, with ``plot(record, path)``, the figure to
+    ``out/<name>.png``; then say where they are."""
+    paths = [out / f"{name}.json"]
+    paths[0].write_text(json.dumps(record, indent=2, default=_jsonable) + "\n")
+    if plot is not None:
+        paths.append(out / f"{name}.png")
+        plot(record, paths[1])
+    print(f"\nwrote {' and '.join(map(str, paths))}")

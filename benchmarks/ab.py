@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import subprocess
 import sys
 import tempfile
@@ -65,7 +64,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import record_header  # noqa: E402
+from _machine import record_header, write_results  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -367,9 +366,7 @@ def main(argv=None):
                   "b": {"version": args.b, "source": str(sources["B"])},
                   "summary": summarise(versions, times)}
     print_table(record)
-    (out / "ab.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
-    plot(record, out / "ab.png")
-    print(f"\nwrote {out / 'ab.json'} and {out / 'ab.png'}")
+    write_results(out, "ab", record, plot)
     return record
 
 

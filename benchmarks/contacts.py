@@ -37,7 +37,6 @@ It prints a table and writes ``contacts.json`` and ``contacts.png`` to ``--out``
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -51,7 +50,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import json_from_python, record_header, timed  # noqa: E402
+from _machine import json_from_python, record_header, timed, write_results  # noqa: E402
 
 G = 9.81
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
@@ -270,9 +269,8 @@ def main(argv=None):
     print_table(results)
     record = {**header, "jaxrb": rb.__version__, "backend": jax.default_backend(),
               "dtype": str(jnp.dtype(dtype)), "envs": args.envs, "results": results}
-    (out / "contacts.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
-    plot({k: v for k, v in results.items() if k != "peers"}, out / "contacts.png")
-    print(f"\nwrote {out / 'contacts.json'} and {out / 'contacts.png'}")
+    write_results(out, "contacts", record,
+                  lambda r, path: plot({k: v for k, v in r["results"].items() if k != "peers"}, path))
     return record
 
 

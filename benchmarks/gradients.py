@@ -40,7 +40,6 @@ It prints a table and writes ``gradients.json`` and ``gradients.png`` to ``--out
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -54,7 +53,7 @@ import numpy as np
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import json_from_python, peak_rss_bytes, record_header, timed  # noqa: E402
+from _machine import json_from_python, peak_rss_bytes, record_header, timed, write_results  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results"
@@ -337,9 +336,7 @@ def main(argv=None):
         progress("the peers, in their interpreter")
         record["peers"] = run_peers(args.peer_python, args.steps, args.repeats)
     print_table(record)
-    (out / "gradients.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
-    plot(record, out / "gradients.png")
-    print(f"\nwrote {out / 'gradients.json'} and {out / 'gradients.png'}")
+    write_results(out, "gradients", record, plot)
     return record
 
 

@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 import collections
 import glob
-import json
 import re
 import sys
 import tempfile
@@ -60,7 +59,7 @@ import jax.numpy as jnp
 import jaxrb as rb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
-from _machine import record_header  # noqa: E402
+from _machine import record_header, write_results  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 #: Profiler events that wrap kernels (or are bookkeeping) rather than being kernels.
@@ -249,9 +248,7 @@ def main(argv=None):
         **measure(args.scene, steps, args.depth, args.frames),
     }
     print_table(args.scene, record, args.top)
-    path = out / f"kernels_{args.scene}.json"
-    path.write_text(json.dumps(record, indent=2) + "\n")
-    print(f"\nwrote {path}")
+    write_results(out, f"kernels_{args.scene}", record)
     return record
 
 
