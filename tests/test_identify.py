@@ -318,6 +318,28 @@ def test_free_fall_cannot_tell_the_mass():
     assert "+1.00 mass[ball]" in str(report)
 
 
+def test_a_lone_parameter_at_rounding_level_is_unidentifiable():
+    """The mass alone, from free fall: its sensitivity is rounding (1e-17 m per unit relative
+    change), and with no other free parameter to be compared with, the relative test alone
+    had reported it identifiable with a standard error of 3e13."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    step = rb.make_step(scene, SIE, 1e-2)
+    truth = scene.params(mass=1.3, dtype=jnp.float64)
+
+    def path(params):
+        return rb.rollout(step, params, scene.state(params, position=(0, 0, 1.0), velocity=(1.0, 0, 0)),
+                          20)[1].position[:, 0].ravel()
+
+    measured = path(truth) + 1e-3 * np.random.default_rng(0).standard_normal(60)
+    report = rb.identify.identifiability(lambda p, d: path(p) - d, scene, truth, "mass", data=measured)
+    assert report.singular_values[0] < 1e-12 < report.floor
+    assert not report.identifiable and np.isinf(report.std[0])
+    assert "rounding level" in str(report) and "mass[ball]" in str(report)
+    # The same rollout sees gravity (one free field of three values): identifiable.
+    seen = rb.identify.identifiability(lambda p, d: path(p) - d, scene, truth, "gravity", data=measured)
+    assert seen.identifiable and seen.singular_values[-1] > 1e3 * seen.floor
+
+
 def test_fewer_residuals_than_parameters_leave_the_unseen_directions_unidentifiable():
     """With m < p residuals the SVD has only m singular values: the p - m directions the
     data cannot see are reported (singular value 0), and with no residual to spare

@@ -10,7 +10,10 @@ Which combinations the data pin down is read from the singular values of ``J D``
 sensitivities to *relative* changes, so the singular values do not depend on units. A
 singular value that is a tiny fraction of the largest (below ``rcond``) names a direction
 ``v`` in which the parameters can move together, ``theta (1 + eps v)``, without changing
-the residuals: it is unidentifiable from these data. Two classic cases: free fall alone
+the residuals: it is unidentifiable from these data. So is one whose residual change is at
+the level of rounding, whatever the others' (a single free parameter has no other to be
+compared with): a singular value below ``sqrt(eps)`` times the size of the data (the
+norm of ``data``'s values and of the residuals, the larger). Two classic cases: free fall alone
 says nothing about mass (the column is zero), and torque-free tumbling, given its initial
 angular velocity, says nothing about the inertia's scale (``v`` is the inertia itself).
 """
@@ -50,12 +53,16 @@ class Identifiability:
             ``p - m`` are 0).
         directions: ``(p, p)`` the matching right singular vectors (relative changes).
         unidentifiable: ``[(relative singular value, direction), ...]`` for every singular
-            value below ``rcond`` times the largest: combinations the data do not determine.
+            value below ``rcond`` times the largest, or below ``floor``: combinations the
+            data do not determine.
         sigma2: the residual variance ``|r|^2 / (m - p)``; NaN when ``m <= p`` (no residual
             to estimate it from; the covariance and the standard errors are then NaN too).
         covariance: ``(p, p)`` ``sigma^2 (J^T J)^+`` (pseudo-inverse with ``rcond``).
         std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
         rcond: the threshold used.
+        floor: the absolute threshold: ``sqrt(eps)`` times the size of the data (the norm
+            of ``data``'s values and of the residuals, the larger). A sensitivity below it
+            is rounding, as the mass's in free fall is (1e-17 against data of size 4).
         scale: ``(p,)`` the relative coordinates' scale ``|theta|`` (1 for zero entries):
             a direction ``v`` is the change ``scale * v`` in each parameter's own units.
     """
@@ -71,6 +78,7 @@ class Identifiability:
     std: np.ndarray
     rcond: float
     scale: np.ndarray
+    floor: float = 0.0
 
     @property
     def identifiable(self) -> bool:
@@ -98,8 +106,11 @@ class Identifiability:
         lines.append("relative singular values: " + ", ".join(f"{s:.2e}" for s in rel))
         if not self.unidentifiable:
             lines.append("every parameter is identifiable from these data")
+        top = self.singular_values[0]
         for s, direction in self.unidentifiable:
-            lines.append(f"UNIDENTIFIABLE (relative singular value {s:.1e}): {self.describe(direction)}")
+            why = (f"singular value {s * top:.1e}, at rounding level (below {self.floor:.1e})"
+                   if s * top <= self.floor else f"relative singular value {s:.1e}")
+            lines.append(f"UNIDENTIFIABLE ({why}): {self.describe(direction)}")
         return "\n".join(lines)
 
 
@@ -123,7 +134,8 @@ def identifiability(
         data, batched: as :func:`fit`.
         rcond: relative singular values below it are reported unidentifiable. Default
             ``100 sqrt(eps)`` of the dtype: 1.5e-6 in float64, 0.03 in float32 (use
-            float64 for this analysis when you can).
+            float64 for this analysis when you can). Singular values below the report's
+            ``floor`` (rounding level, see :class:`Identifiability`) are reported too.
         friction_max: as given to the fit (a free friction must lie below it).
 
     Returns:
@@ -140,14 +152,18 @@ def identifiability(
         return jax.jacfwd(lambda t: (r(t),) * 2, has_aux=True)(theta)
 
     jac, res = (np.asarray(a, dtype=float) for a in linearise(theta))
-    return _report(space, params, np.asarray(theta, dtype=float), jac, res, rcond)
+    values = [np.ravel(np.asarray(x, dtype=float)) for x in jax.tree.leaves(data)
+              if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
+    size = float(np.linalg.norm(np.concatenate(values))) if values else 0.0
+    return _report(space, params, np.asarray(theta, dtype=float), jac, res, rcond, size)
 
 
 def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcond: float | None = None):
     """The report at ``params`` from ``dr/dz`` ``(m, n)`` in the unconstrained coordinates.
 
     ``dr/dtheta = dr/dz (dtheta/dz)^-1``, with ``dtheta/dz`` the Jacobian of the parameter
-    maps alone (no simulation). Coordinates that move no free value (fixed entries of a
+    maps alone (no simulation). No data are given here, so the rounding floor is measured
+    against the residuals alone (zero at an exact fit). Coordinates that move no free value (fixed entries of a
     free field) are dropped first, which leaves the square, invertible Jacobian of the
     per-field bijections.
     """
@@ -187,9 +203,10 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
     return _report(space, params, theta, jac_theta, np.asarray(residuals, dtype=float).ravel(), rcond)
 
 
-def _report(space, params: Params, theta, jac, res, rcond) -> Identifiability:
+def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) -> Identifiability:
+    eps = float(np.finfo(np.asarray(params.mass).dtype).eps)
     if rcond is None:
-        rcond = 100.0 * float(np.sqrt(np.finfo(np.asarray(params.mass).dtype).eps))
+        rcond = 100.0 * float(np.sqrt(eps))
     # By row: forward mode spreads one infinite slope to every column as inf * 0 = NaN.
     bad = np.flatnonzero(~np.all(np.isfinite(jac), axis=1) | ~np.isfinite(res))
     if bad.size:
@@ -205,7 +222,11 @@ def _report(space, params: Params, theta, jac, res, rcond) -> Identifiability:
     _, sv, vt = np.linalg.svd(jac * scale[None, :], full_matrices=True)
     sv = np.concatenate([sv, np.zeros(p - sv.size)])
     top = sv[0] if sv.size and sv[0] > 0 else 1.0
-    weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= rcond * top]
+    # Relative to the largest, and absolute: the residuals' change at rounding level. A
+    # single free parameter, or several that all cancel out of the simulation (the mass in
+    # free fall, 1e-17 m per unit relative change), has no larger one to be compared with.
+    floor = float(np.sqrt(eps)) * max(size, float(np.linalg.norm(res)))
+    weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= max(rcond * top, floor)]
     # With no residual to spare (m <= p) the noise variance cannot be estimated from the
     # fit (an exact fit would claim zero error): NaN, not |r|^2 / 1.
     sigma2 = float(res @ res / (m - p)) if m > p else float("nan")
@@ -214,4 +235,4 @@ def _report(space, params: Params, theta, jac, res, rcond) -> Identifiability:
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     for _, direction in weak:
         std = np.where(np.abs(direction) >= 0.1, np.inf, std)
-    return Identifiability(space.labels, theta, jac, sv, vt, weak, sigma2, covariance, std, rcond, scale)
+    return Identifiability(space.labels, theta, jac, sv, vt, weak, sigma2, covariance, std, rcond, scale, floor)
