@@ -614,6 +614,20 @@ def test_transformed_rotates_and_translates():
     np.testing.assert_allclose(float(moved.mass), float(body.mass))
 
 
+def test_transformed_refuses_a_non_unit_quaternion():
+    """R comes from the unit quaternion's formula: (1, 0, 0, 1), meant as 90 degrees about z,
+    had given a sphere the moments (0.02, 0.02, 0.004) for 0.004 each, silently; (0, 0, 0,
+    0) had meant no rotation. Rounded decimals pass, and so does a traced quaternion."""
+    sphere = inertia.mass_properties(shapes.Sphere(0.1), mass=1.0)
+    for q in [(1.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.3)]:
+        with pytest.raises(ValueError, match="not a unit quaternion"):
+            sphere.transformed((0.0, 0.0, 0.0), q)
+    turned = sphere.transformed((0.0, 0.0, 0.0), (0.7071, 0.0, 0.0, 0.7071))
+    np.testing.assert_allclose(np.diag(np.asarray(turned.inertia)), 0.004, rtol=1e-4)
+    traced = jax.jit(lambda q: sphere.transformed((0.0, 0.0, 0.0), q).inertia)(jnp.array([1.0, 0.0, 0.0, 0.0]))
+    np.testing.assert_allclose(np.asarray(traced), np.asarray(sphere.inertia))
+
+
 def test_shifted_inertia_matches_point_mass_loop():
     rng = np.random.default_rng(4)
     masses, positions = rng.uniform(0.5, 1.0, 9), rng.normal(size=(9, 3))
