@@ -25,6 +25,7 @@ gradients flow through the solve (discretise-then-optimise,
 from __future__ import annotations
 
 import dataclasses
+import numbers
 
 import diffrax
 import equinox as eqx
@@ -34,6 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import spatial
+from .contact._settings import static_switch
 from .dynamics import stage_derivative
 from .scene import Scene
 from .state import Params, State
@@ -172,13 +174,21 @@ class Solution(eqx.Module):
         """The state at time ``t`` (s; a scalar or a 1-D array of times) from dense output.
 
         The same interpolant as saving at ``ts`` (see :func:`solve`); its quaternion is
-        normalised. Needs ``solve(..., dense=True)``.
+        normalised. Needs ``solve(..., dense=True)``. ``t`` must lie in the solve's
+        interval ``[state.time, t1]``: a concrete time outside it is refused (the
+        interpolant gives NaN there), a traced one gives NaN.
         """
         if self.interpolation is None:
             raise ValueError("This Solution has no dense output: call rb.ode.solve(..., dense=True).")
         t = jnp.asarray(t, dtype=self.final.time.dtype)
         if t.ndim > 1:
             raise ValueError(f"evaluate takes a scalar time or a 1-D array of times, got shape {t.shape}.")
+        times, start, end = (_concrete(x) for x in (t, self.interpolation.t0, self.interpolation.t1))
+        if times is not None and start is not None and end is not None:
+            outside = times[(times < start) | (times > end)]
+            if outside.size:
+                raise ValueError(f"evaluate: t = {outside.tolist()[:4]} s lies outside the solve's interval "
+                                 f"[{float(start)}, {float(end)}] s, where there is no dense output.")
 
         def at(time):
             return self.interpolation.evaluate(time).to_state(time)
@@ -209,12 +219,20 @@ def check_inputs(scene, params, state, where: str) -> None:
         raise ValueError(f"{where} needs rb.Params (from scene.params()), got {type(params).__name__}.")
     if not isinstance(state, State):
         raise ValueError(f"{where} needs an rb.State (from scene.state()), got {type(state).__name__}.")
+    scene.check_inputs(params, state)
     if state.rotation is not None:
         raise ValueError(
             "This state carries a rotation matrix (State.rotation, used by rb.integrators.ExplicitEuler), "
             f"which is then the attitude. {where} integrates the quaternion: pass "
             "state.replace(orientation=rb.spatial.matrix_to_quat(state.rotation), rotation=None)."
         )
+
+
+def _check_max_steps(max_steps) -> int:
+    """``max_steps`` as a Python int (any integer type: it is static), or a ``ValueError``."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    return int(max_steps)
 
 
 def _check_positive(name: str, value) -> None:
@@ -338,8 +356,9 @@ def solve(
         )
     _check_positive("rtol", rtol)
     _check_positive("atol", atol)
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    max_steps = _check_max_steps(max_steps)
+    step_to_ts, dense, throw = (static_switch(name, value) for name, value in
+                                (("step_to_ts", step_to_ts), ("dense", dense), ("throw", throw)))
     dtype = state.position.dtype
     t0 = jnp.asarray(state.time, dtype=dtype)
     _check_times(t0, t1, ts)
@@ -451,6 +470,9 @@ def solve_with_impacts(
     if not isinstance(settings, ContactSettings):
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
     _check_times(jnp.asarray(state.time, state.position.dtype), t1, None, "rb.ode.solve_with_impacts")
+    _check_positive("rtol", rtol)
+    _check_positive("atol", atol)
+    max_steps = _check_max_steps(max_steps)
     # A margin beyond any distance in the scene: every pair's separation is its true distance
     # (box pairs: the separating axes' lower bound, which has the same roots).
     ctx = _Ctx(scene, layout_of(scene), None, dataclasses.replace(settings, margin=1e6), 1.0)

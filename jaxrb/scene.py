@@ -436,6 +436,7 @@ class Scene:
         """One coefficient per contact pair from a scalar, a ``(P,)`` array or a dict (see params)."""
         pairs = self.contact_pairs
         p = len(pairs)
+        low, high = (0.0, 1.0) if what == "restitution" else (0.0, np.inf)
         if not isinstance(value, Mapping):
             arr = jnp.asarray(value, dtype=dtype)
             if arr.shape not in ((), (p,)):
@@ -443,18 +444,27 @@ class Scene:
                     f"{what} must be one value, a ({p},) array (one per contact pair, in the order "
                     f"{list(pairs)}), or a dict; got shape {arr.shape}."
                 )
+            # Checked here too, where the scene has no pair to keep it in (the value is then
+            # unused, but 5.0 or NaN is a mistake all the same); check_params checks the rest.
+            if not p and not _is_traced(value):
+                v = np.asarray(value, dtype=float)
+                if not (np.isfinite(v) and low <= v <= high):
+                    raise ValueError(f"{what} must lie in [{low}, {high}], got {value!r}.")
             return jnp.broadcast_to(arr, (p,))
         per_body = {k: v for k, v in value.items() if isinstance(k, str)}
         per_pair = {tuple(k): v for k, v in value.items() if not isinstance(k, str)}
+        in_pairs = {n for pair in pairs for n in pair}
         for name, v in per_body.items():
             if name != GROUND:
                 self.index(name)  # raises on unknown names
             elif self.ground is None:
                 raise ValueError(f"{what}[{GROUND!r}]: this scene has no ground (pass ground=rb.Plane()).")
+            if name not in in_pairs:
+                raise ValueError(f"{what}[{name!r}]: {name!r} is in no contact pair of this scene, so its {what} "
+                                 f"would be ignored; the pairs are {list(pairs)}.")
             # Checked before they are combined: max(-3, 0) and sqrt(-0.4 * -0.9) would pass.
             if not _is_traced(v):
                 v = np.asarray(v, dtype=float)
-                low, high = (0.0, 1.0) if what == "restitution" else (0.0, np.inf)
                 if v.shape != () or not np.isfinite(v) or not low <= v <= high:
                     raise ValueError(f"{what}[{name!r}] must be one number in [{low}, {high}], got {v!r}.")
         for key in per_pair:
@@ -507,6 +517,20 @@ class Scene:
             if value is not None and jnp.shape(value) != shape:
                 raise ValueError(f"State.{field} has shape {jnp.shape(value)}; this scene of {n} bodies needs "
                                  f"{shape}. Build the state with this scene's scene.state(...).")
+
+    def check_inputs(self, params: Params, state: State) -> None:
+        """Raise ``ValueError`` unless ``params`` and ``state`` fit this scene and each other:
+        their shapes (:meth:`check_shapes`, :meth:`check_state_shapes`), and a state at
+        least as precise as the params. A float32 state with float64 params was promoted by
+        the step (a rollout's loop then failed on its carry's type; ``ode.solve`` inside
+        diffrax). Dtypes and shapes only, so it also works on traced values."""
+        self.check_shapes(params)
+        self.check_state_shapes(state)
+        have, need = jnp.result_type(state.position), jnp.result_type(params.mass)
+        if jnp.promote_types(have, need) != have:
+            raise ValueError(f"The state is {have} and the params {need}: the step would compute in {need}. Build "
+                             f"both in one dtype: scene.params(..., dtype=...), then scene.state(params, ...), "
+                             f"which takes the params' dtype.")
 
     def check_params(self, params: Params) -> None:
         """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical.

@@ -25,7 +25,7 @@ from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
 from .contact._settings import static_step_length, static_switch
 from .contact._solver import SAVE_NAMED
-from .contact._step import contact_step, far_from_contact, free_step, initial_impulses
+from .contact._step import contact_step, far_from_contact, free_step, initial_impulses, layout_of
 from .integrators import Integrator
 from .scene import Scene
 from .state import Params, State
@@ -49,12 +49,16 @@ class Step(eqx.Module):
 
     def prepare(self, state: State) -> State:
         """Put a state in the form this step carries (idempotent): the integrator's form
-        (see Integrator) and, with contacts, the warm-start impulses."""
+        (see Integrator) and, with contacts, the warm-start impulses. Impulses of another
+        scene's shape (a state carried over from another scene) are replaced by zeros, and
+        dropped in a scene without contacts: they are a warm start only."""
         self.scene.check_state_shapes(state)
         state = self.integrator.prepare(state)
-        if self.scene.contact_pairs and state.contact_impulse is None:
-            state = dataclasses.replace(
-                state, contact_impulse=initial_impulses(self.scene, state.position.dtype))
+        if not self.scene.contact_pairs:
+            return dataclasses.replace(state, contact_impulse=None)
+        zeros = initial_impulses(self.scene, state.position.dtype)
+        if state.contact_impulse is None or jnp.shape(state.contact_impulse) != zeros.shape:
+            state = dataclasses.replace(state, contact_impulse=zeros)
         return state
 
     @eqx.filter_jit
@@ -72,9 +76,9 @@ class Step(eqx.Module):
         """One step, given ``derived = self.integrator.precompute(params)`` (see Integrator)."""
         # Shapes only, so at trace time: params from another scene, or a field changed by
         # Params.replace (which cannot validate), would otherwise broadcast silently.
-        self.scene.check_shapes(params)
-        self.scene.check_state_shapes(state)
+        self.scene.check_inputs(params, state)
         if self.scene.contact_pairs:
+            _check_impulses(self.scene, state)
             new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
         elif derived is None:
             new = self.integrator.step(self.scene, params, state, self.dt)
@@ -83,6 +87,17 @@ class Step(eqx.Module):
         if self.debug:
             new = _checked(self, new)
         return new
+
+
+def _check_impulses(scene: Scene, state: State) -> None:
+    """Refuse warm-start impulses of another scene's shape (which failed inside the step's
+    ``cond`` with a message about its branches' shapes)."""
+    need = (layout_of(scene).num_slots, 3)
+    have = None if state.contact_impulse is None else jnp.shape(state.contact_impulse)
+    if have is not None and have != need:
+        raise ValueError(f"State.contact_impulse has shape {have}; this scene's contact slots need {need}: the "
+                         "state comes from another scene. Pass it through step.prepare(state), which resets them "
+                         "(rollout does).")
 
 
 def _checked(step: Step, new: State) -> State:

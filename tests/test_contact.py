@@ -166,6 +166,25 @@ def test_bad_coefficients_are_refused(kwargs, message):
         scene.params(**kwargs)
 
 
+def test_coefficients_no_pair_would_use_are_still_checked():
+    """A scene without contact pairs kept no coefficient, so restitution=5.0 or friction=-3.0
+    passed unchecked; a per-body value for a body in no pair was ignored silently."""
+    free = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)])
+    for kwargs, message in [({"restitution": 5.0}, "restitution must lie in"),
+                            ({"friction": -3.0}, "friction must lie in"), ({"friction": np.nan}, "friction")]:
+        with pytest.raises(ValueError, match=message):
+            free.params(**kwargs)
+    assert free.params(restitution=0.3, friction=0.2).restitution.shape == (0,)  # in range: nothing to keep
+    bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)]
+    scene = rb.Scene(bodies, ground=rb.Plane(), contacts=[("a", "ground")])
+    with pytest.raises(ValueError, match="'b' is in no contact pair of this scene"):
+        scene.params(restitution={"b": 0.9})
+    apart = rb.Scene(bodies, ground=rb.Plane(), contacts=[("a", "b")])
+    with pytest.raises(ValueError, match="'ground' is in no contact pair"):
+        apart.params(friction={"ground": 0.9})
+    np.testing.assert_allclose(scene.params(restitution={"a": 0.9, "ground": 0.1}).restitution, [0.9])
+
+
 def test_coefficients_of_the_wrong_shape_are_refused_by_the_step():
     """Params.replace does not validate; the step does, before a gather could clamp a short
     array's missing pairs to its last entry."""

@@ -122,6 +122,25 @@ def test_bad_free_specifications_are_explained(free, message):
         FreeParameters(scene, scene.params(restitution=0.5), free)
 
 
+def test_what_a_scene_does_not_simulate_cannot_be_free():
+    """An infinite friction_max made the friction NaN from the first iterate (inf * sigmoid);
+    gravity free in a scene built with gravity=None, or a damping without its force model,
+    was accepted and the fit "converged" at once with a zero gradient."""
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(friction=0.5)
+    for bound in (float("inf"), float("nan"), 0.0, True, "2"):
+        with pytest.raises(ValueError, match="friction_max must be a positive, finite number"):
+            FreeParameters(scene, params, "friction", friction_max=bound)
+    assert FreeParameters(scene, params, "friction", friction_max=np.float32(3.0)).labels
+    weightless = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], gravity=None)
+    for field, missing in [("gravity", "gravity=None"), ("linear_damping", "no rb.LinearDamping"),
+                           ("angular_damping", "no rb.AngularDamping")]:
+        with pytest.raises(ValueError, match=f"free includes '{field}', but .*{missing}"):
+            FreeParameters(weightless, weightless.params(), field)
+    damped = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], forces=[rb.LinearDamping()])
+    assert FreeParameters(damped, damped.params(linear_damping=0.1), "linear_damping").labels
+
+
 def test_masks_and_indices_as_arrays_select_what_they_say():
     """A NumPy or JAX boolean array is a mask, an integer array a list of indices (a JAX
     mask was once read as indices, and NumPy indices as a mask)."""

@@ -359,3 +359,81 @@ def test_a_traced_field_skips_only_its_own_check():
     # One traced field had switched every value check off: a NaN gravity passed.
     with pytest.raises(ValueError, match="gravity must be finite"):
         jax.grad(lambda m: scene.params(mass=m, gravity=(0.0, 0.0, float("nan"))).mass.sum())(1.0)
+
+
+def test_a_state_from_another_scene_gets_this_scenes_impulses():
+    """Warm-start impulses of another scene's shape: rollout failed inside its loop (a sphere's
+    1 slot against a box's 4: "true_fn and false_fn must return the same shapes"; a scene
+    without contacts: a scan carry of None). prepare resets or drops them; a direct step
+    call says what is wrong."""
+    euler = rb.integrators.SemiImplicitEuler()
+    spheres = scene_of(BALL, ground=rb.Plane(), contacts="all")
+    boxes = scene_of(rb.Body("ball", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0), ground=rb.Plane(), contacts="all")
+    free = scene_of(BALL)
+    start = spheres.state(position=(0, 0, 0.1))
+    carried, _ = rb.rollout(rb.make_step(spheres, euler, 1e-2), spheres.params(), start, 4)
+    assert carried.contact_impulse.shape == (1, 3)
+    final, _ = rb.rollout(rb.make_step(boxes, euler, 1e-2), boxes.params(), carried, 4)
+    assert final.contact_impulse.shape == (4, 3)
+    assert rb.rollout(rb.make_step(free, euler, 1e-2), free.params(), carried, 4)[0].contact_impulse is None
+    with pytest.raises(ValueError, match=r"contact_impulse has shape \(1, 3\).*step.prepare"):
+        rb.make_step(boxes, euler, 1e-2)(boxes.params(), carried)
+
+
+def test_params_and_state_must_fit_the_scene_and_each_other():
+    """A float32 state with float64 params was promoted by the step (rollout then failed on its
+    carry's type, ode.solve inside diffrax); ode.solve, resolve_impacts and penetration did not
+    check that params and state belong to the scene (a vmap size error, a concatenate error,
+    and the first body's overlap only, silently)."""
+    euler = rb.integrators.SemiImplicitEuler()
+    scene = scene_of(BALL)
+    wide, narrow = scene.params(dtype=jnp.float64), scene.state(scene.params(dtype=jnp.float32))
+    step = rb.make_step(scene, euler, 1e-2)
+    for run in (lambda: step(wide, narrow), lambda: rb.rollout(step, wide, narrow, 4),
+                lambda: rb.ode.solve(scene, wide, narrow, 0.1)):
+        with pytest.raises(ValueError, match="state is float32 and the params float64"):
+            run()
+    # float32 params with a float64 state run in the state's precision, as before
+    assert step(scene.params(dtype=jnp.float32), scene.state(wide)).position.dtype == jnp.float64
+
+    pair = scene_of(BALL, rb.Body("other", shape=rb.Sphere(0.1), mass=2.0))
+    with pytest.raises(ValueError, match=r"Params.mass has shape \(2,\)"):
+        rb.ode.solve(scene, pair.params(), scene.state(), 0.1)
+    ground = scene_of(BALL, ground=rb.Plane(), contacts="all")
+    two = scene_of(BALL, rb.Body("other", shape=rb.Sphere(0.1), mass=1.0), ground=rb.Plane(), contacts="all")
+    with pytest.raises(ValueError, match=r"State.position has shape \(2, 3\)"):
+        rb.contact.resolve_impacts(ground, ground.params(), two.state(velocity=(0, 0, -1.0)))
+    with pytest.raises(ValueError, match=r"State.position has shape \(2, 3\)"):
+        rb.contact.penetration(ground, two.state(position=(0, 0, 0.05)))
+
+
+def test_integrator_and_ode_switches_and_limits():
+    """Static switches elsewhere take True or False too ("no" had switched Gram-Schmidt, the
+    safeguard and dense output on); solve_with_impacts checks rtol, atol and max_steps as
+    solve does (rtol=-1 was accepted, atol=0 failed at run time in a callback, max_steps=0
+    inside diffrax); max_steps of any integer type; Solution.evaluate refuses concrete
+    times outside the solve (NaN states had come back)."""
+    for make, name in [(rb.integrators.ExplicitEuler, "reorthonormalize"), (rb.integrators.ImplicitGyroscopic,
+                       "safeguard"), (rb.integrators.ImplicitMidpoint, "safeguard")]:
+        with pytest.raises(ValueError, match=f"{name}=...\\) must be True or False"):
+            make(**{name: "no"})
+        assert getattr(make(**{name: np.bool_(False)}), name) is False
+
+    box = scene_of(rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
+    params, state = box.params(), box.state(velocity=(1.0, 0.0, 0.0), time=1.0)
+    for name in ("dense", "step_to_ts", "throw"):
+        with pytest.raises(ValueError, match=f"{name} must be True or False"):
+            rb.ode.solve(box, params, state, 2.0, **{name: "no"})
+    solution = rb.ode.solve(box, params, state, 2.0, dense=np.bool_(True), max_steps=np.int64(100))
+    np.testing.assert_allclose(solution.evaluate(jnp.array([1.0, 1.5, 2.0])).position[:, 0, 0], [0.0, 0.5, 1.0],
+                               atol=1e-12)
+    for t in (0.5, jnp.array([1.5, 2.0000001])):
+        with pytest.raises(ValueError, match="outside the solve's interval"):
+            solution.evaluate(t)
+
+    ball = scene_of(BALL, ground=rb.Plane(), contacts="all")
+    p, s = ball.params(restitution=0.8), ball.state(position=(0.0, 0.0, 1.1))
+    for kwargs, message in [({"rtol": -1.0}, "rtol must be a positive"), ({"atol": 0.0}, "atol must be a positive"),
+                            ({"max_steps": 0}, "max_steps must be a positive integer")]:
+        with pytest.raises(ValueError, match=message):
+            rb.ode.solve_with_impacts(ball, p, s, 1.0, max_impacts=2, **kwargs)

@@ -19,6 +19,7 @@ def penetration(scene: Scene, state: State) -> Float[Array, ""]:
     ``0`` when nothing overlaps (or the scene declares no contact pairs). One narrow-phase
     pass over the declared pairs; works under ``jit``, ``vmap`` and ``grad``.
     """
+    scene.check_state_shapes(state)
     if not scene.contact_pairs:
         return jnp.zeros((), state.position.dtype)
     contact = detect(scene, layout_of(scene), state, 0.0)

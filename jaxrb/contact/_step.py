@@ -100,7 +100,9 @@ def _touching_distance(settings: ContactSettings, margin: float) -> float:
 
 
 @functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=64)
 def layout_of(scene: Scene) -> Layout:
+    """The scene's contact layout, built once per scene (the colouring tries orders)."""
     return build_layout(scene)
 
 
@@ -312,6 +314,7 @@ def resolve_impacts(scene: Scene, params: Params, state: State, settings: Contac
     if not isinstance(settings, ContactSettings):
         raise ValueError(f"settings must be an rb.ContactSettings(...), got {settings!r}.")
     dt = static_step_length(dt, "resolve_impacts")
+    scene.check_inputs(params, state)
     return impact_law(_Ctx(scene, layout_of(scene), None, settings, dt), params, state)
 
 

@@ -37,6 +37,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
+from ..forces import AngularDamping, LinearDamping
 from ..scene import Scene
 from ..state import Params
 
@@ -127,8 +128,10 @@ class FreeParameters:
     def __post_init__(self):
         if not isinstance(self.params, Params):
             raise ValueError(f"params must be an rb.Params (scene.params()), got {type(self.params).__name__}.")
-        if not self.friction_max > 0:
-            raise ValueError(f"friction_max must be positive, got {self.friction_max}.")
+        if isinstance(self.friction_max, bool) or not (isinstance(self.friction_max, (int, float, np.floating))
+                                                        and 0 < self.friction_max < np.inf):
+            raise ValueError(f"friction_max must be a positive, finite number (the free friction's upper bound; "
+                             f"its map is friction_max * sigmoid(u)), got {self.friction_max!r}.")
         spec = self.free
         if isinstance(spec, str):
             spec = {spec: True}
@@ -151,12 +154,19 @@ class FreeParameters:
 
     def _mask(self, field, which):
         scene = self.scene
+        declared = {type(m) for m in scene.force_models}
         if field == "extra":
             if which is not True:
                 raise ValueError("free['extra'] must be True: the user pytree is fitted as a whole.")
             if self.params.extra is None:
                 raise ValueError("free includes 'extra' but params.extra is None.")
             return None
+        unused = {"gravity": scene.gravity is None and "the scene was built with gravity=None",
+                  "linear_damping": LinearDamping not in declared and "the scene has no rb.LinearDamping()",
+                  "angular_damping": AngularDamping not in declared and "the scene has no rb.AngularDamping()"}
+        if unused.get(field):
+            raise ValueError(f"free includes {field!r}, but {unused[field]}: it is not simulated, so the data "
+                             f"cannot determine it (a fit would stop at once, its gradient zero).")
         size = {"gravity": 3}.get(field, scene.num_contact_pairs if field in _PER_PAIR else scene.num_bodies)
         if which is True:
             return np.ones(size, bool)

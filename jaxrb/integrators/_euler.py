@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, angular_velocity, inverse_inertia_body
-from ._base import Integrator
+from ._base import Integrator, check_switch, truth_value
 
 __all__ = ["ExplicitEuler", "SemiImplicitEuler"]
 
@@ -52,8 +52,11 @@ class ExplicitEuler(Integrator):
       even the reorthonormalised method inaccurate, though it stays bounded.
     """
 
-    reorthonormalize: bool = eqx.field(default=True, static=True)
+    reorthonormalize: bool = eqx.field(default=True, static=True, converter=truth_value)
     order: ClassVar[int] = 1
+
+    def __check_init__(self):
+        check_switch("ExplicitEuler", "reorthonormalize", self.reorthonormalize)
 
     def prepare(self, state: State) -> State:
         if state.rotation is not None:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from .. import spatial
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, body_inertia, inverse_inertia_body
-from ._base import Integrator, whole_number
+from ._base import Integrator, check_switch, truth_value, whole_number
 from ._composition import kick_drift_kick
 
 __all__ = ["ImplicitGyroscopic", "ImplicitMidpoint"]
@@ -140,12 +140,13 @@ class ImplicitGyroscopic(Integrator):
 
     stages: int = eqx.field(default=3, static=True, converter=whole_number)
     iterations: int = eqx.field(default=8, static=True, converter=whole_number)
-    safeguard: bool = eqx.field(default=True, static=True)
+    safeguard: bool = eqx.field(default=True, static=True, converter=truth_value)
     order: ClassVar[int] = 1
 
     def __check_init__(self):
         _check_iterations("ImplicitGyroscopic", self.iterations)
         _check_iterations("ImplicitGyroscopic", self.stages, "stages")
+        check_switch("ImplicitGyroscopic", "safeguard", self.safeguard)
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         force, torque = wrench(scene, params, state)
@@ -277,12 +278,13 @@ class ImplicitMidpoint(Integrator):
 
     iterations: int = eqx.field(default=8, static=True, converter=whole_number)
     stages: int = eqx.field(default=1, static=True, converter=whole_number)
-    safeguard: bool = eqx.field(default=True, static=True)
+    safeguard: bool = eqx.field(default=True, static=True, converter=truth_value)
     order: ClassVar[int] = 2
 
     def __check_init__(self):
         _check_iterations("ImplicitMidpoint", self.iterations)
         _check_iterations("ImplicitMidpoint", self.stages, "stages")
+        check_switch("ImplicitMidpoint", "safeguard", self.safeguard)
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         def rotate(params, orientation, angular_momentum, dt):
