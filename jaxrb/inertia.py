@@ -387,6 +387,13 @@ def _check_mass_or_density(density, mass, what: str) -> None:
             f"{what}: give exactly one of density= (kg/m^3) or mass= (kg), "
             f"got density={density!r}, mass={mass!r}."
         )
+    # A concrete value must be positive and finite (a traced one passes): density=-1000 had
+    # given a negative mass without a word.
+    name, value = ("density", density) if density is not None else ("mass", mass)
+    number = _concrete_float(value) if np.ndim(value) == 0 else None
+    if number is not None and not (math.isfinite(number) and number > 0):
+        unit = "kg/m^3" if name == "density" else "kg"
+        raise ValueError(f"{what}: {name} must be positive and finite ({unit}), got {value!r}.")
 
 
 def _concrete_float(x) -> float | None:

@@ -437,3 +437,36 @@ def test_integrator_and_ode_switches_and_limits():
                             ({"max_steps": 0}, "max_steps must be a positive integer")]:
         with pytest.raises(ValueError, match=message):
             rb.ode.solve_with_impacts(ball, p, s, 1.0, max_impacts=2, **kwargs)
+
+
+def test_small_input_mistakes_are_explained():
+    """Each of these had passed silently or failed with an error about something else."""
+    scene = scene_of(BALL)
+    with pytest.raises(ValueError, match="dt must be a positive number"):
+        rb.make_step(scene, rb.integrators.RK4(), "0.01")  # float("0.01") had passed
+    for kwargs in ({"density": -1000.0}, {"mass": 0.0}, {"density": float("nan")}):
+        with pytest.raises(ValueError, match="must be positive and finite"):
+            rb.mass_properties(rb.Sphere(0.1), **kwargs)  # a negative mass had come back
+    pose = ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="is the class rb.Sphere"):
+        rb.collide(rb.Sphere, *pose, rb.Plane())  # an AttributeError on 'radius'
+    with pytest.raises(ValueError, match="no position given"):
+        rb.collide(rb.Sphere(0.1), None, pose[1], rb.Plane())
+    for margin in (jnp.asarray(-5.0), [0.1], "0.1"):
+        with pytest.raises(ValueError, match="margin must be one distance >= 0"):
+            rb.collide(rb.Sphere(0.1), *pose, rb.Plane(), margin=margin)
+    assert rb.collide(rb.Sphere(0.1), *pose, rb.Plane(), margin=jnp.asarray(0.01)).active.shape == (1,)
+
+    params = scene.params()
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        rb.identify.fit(lambda p: jnp.sum(p.mass), scene, params, "mass", max_steps=0, progress=False)
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        rb.identify.fit_least_squares(lambda p: p.mass, scene, params, "mass", max_steps=-1, progress=False)
+    with pytest.raises(ValueError, match="fit_least_squares"):  # a bare reshape error
+        rb.identify.fit(lambda p: jnp.concatenate([p.mass, p.mass]), scene, params, "mass", max_steps=2,
+                        progress=False)
+    with pytest.raises(ValueError, match="free must name what to fit"):
+        rb.identify.FreeParameters(scene, params, None)
+    with pytest.raises(ValueError, match=r"Params.mass has shape \(2,\)"):
+        rb.identify.FreeParameters(scene, scene_of(BALL, rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)).params(),
+                                   "mass")

@@ -110,6 +110,10 @@ def collide(
             pose has the wrong shape, a concrete orientation is not a unit quaternion, or a
             static margin is negative.
     """
+    for shape, label in ((shape_a, "shape_a"), (shape_b, "shape_b")):
+        if isinstance(shape, type):
+            raise ValueError(f"collide: {label} is the class rb.{shape.__name__}; pass a shape with its sizes, "
+                             f"e.g. rb.Sphere(0.1) or rb.Plane().")
     function, _, reverse = _lookup(_as_type(shape_a), _as_type(shape_b))
     # Checked here too, under the caller's names (the pair function sees A and B swapped
     # when ``reverse``).

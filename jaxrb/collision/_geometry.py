@@ -21,6 +21,10 @@ def pose(name: str, position: ArrayLike, orientation: ArrayLike) -> tuple[Array,
 
     The check is on shapes only, which are static, so it also runs under ``jit``/``vmap``.
     """
+    if position is None or orientation is None:
+        missing = "position" if position is None else "orientation"
+        raise ValueError(f"{name}: no {missing} given (None); only a plane's pose may be left out. Pass a (3,) "
+                         "position (m, world) and a (4,) unit quaternion (scalar first), e.g. (1, 0, 0, 0).")
     position = jnp.asarray(position)
     orientation = jnp.asarray(orientation)
     if position.shape != (3,):
@@ -61,9 +65,16 @@ def as_float(dtype, *arrays: ArrayLike) -> tuple[Array, ...]:
 
 
 def check_margin(margin) -> None:
-    """A negative margin would make separated shapes 'active'; refuse it when it is static."""
-    if isinstance(margin, (int, float, np.floating, np.integer)) and not margin >= 0:
-        raise ValueError(f"margin must be a distance >= 0 in metres, got {margin}.")
+    """A negative margin would make separated shapes 'active': refuse it, and anything but one
+    number, when it is concrete (a JAX array too; a traced one passes)."""
+    if isinstance(margin, jax.core.Tracer):
+        return
+    try:
+        value = None if isinstance(margin, (str, bytes)) else np.asarray(margin, dtype=float)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or value.shape != () or not value >= 0:
+        raise ValueError(f"margin must be one distance >= 0 in metres, got {margin!r}.")
 
 
 def body_axes(orientation: Float[Array, "4"]) -> Float[Array, "3 3"]:

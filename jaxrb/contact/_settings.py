@@ -33,6 +33,8 @@ def static_step_length(dt, where: str) -> float:
         raise ValueError("dt is static (a Python float): it cannot be traced or differentiated, and each "
                          f"new value compiles a new step. Call {where} outside jit/grad/vmap.")
     try:
+        if isinstance(dt, (str, bytes)):  # float("0.01") would pass
+            raise TypeError
         dt = float(dt)
     except (TypeError, ValueError):
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}.") from None

@@ -10,6 +10,7 @@ experiment comes from ``jax.vmap`` over the leading axis of ``data`` and is aver
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import sys
 import time
 from collections.abc import Callable
@@ -145,6 +146,13 @@ class _Progress:
         sys.stderr.flush()
 
 
+def _check_max_steps(max_steps) -> int:
+    """``max_steps`` as a Python int, or a ``ValueError`` (0 had returned an infinite loss)."""
+    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer (iterations), got {max_steps!r}.")
+    return int(max_steps)
+
+
 def _space(scene, params, free, friction_max) -> FreeParameters:
     if isinstance(free, FreeParameters):
         return free
@@ -200,14 +208,19 @@ def fit(
         A :class:`FitResult`: the fitted params (lowest loss seen), the loss history and a
         convergence flag.
     """
+    max_steps = _check_max_steps(max_steps)
     space = _space(scene, params, free, friction_max)
     objective = _objective(loss, data, batched, jnp.mean)
     optimizer = optax.with_extra_args_support(default_optimizer() if optimizer is None else optimizer)
     z = space.unconstrained()
 
     def total(z):
-        value = objective(space.physical(z))
-        return jnp.asarray(value).reshape(())
+        value = jnp.asarray(objective(space.physical(z)))
+        if value.size != 1:
+            raise ValueError(f"fit's loss must return one number, got shape {value.shape}. For a vector of "
+                             "residuals use rb.identify.fit_least_squares(residuals, ...), or return their "
+                             "sum of squares.")
+        return value.reshape(())
 
     if not isinstance(patience, int) or isinstance(patience, bool) or patience < 1:
         raise ValueError(f"patience must be a positive integer (steps), got {patience!r}.")
@@ -307,6 +320,7 @@ def fit_least_squares(
     Returns:
         A :class:`FitResult`; ``loss`` is ``sum(residuals**2) / 2``.
     """
+    max_steps = _check_max_steps(max_steps)
     space = _space(scene, params, free, friction_max)
     vector = _objective(residuals, data, batched, jnp.ravel)
     flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())

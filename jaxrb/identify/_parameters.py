@@ -128,11 +128,15 @@ class FreeParameters:
     def __post_init__(self):
         if not isinstance(self.params, Params):
             raise ValueError(f"params must be an rb.Params (scene.params()), got {type(self.params).__name__}.")
+        self.scene.check_shapes(self.params)  # params of another scene
         if isinstance(self.friction_max, bool) or not (isinstance(self.friction_max, (int, float, np.floating))
                                                         and 0 < self.friction_max < np.inf):
             raise ValueError(f"friction_max must be a positive, finite number (the free friction's upper bound; "
                              f"its map is friction_max * sigmoid(u)), got {self.friction_max!r}.")
         spec = self.free
+        if spec is None or isinstance(spec, (bool, int, float)):
+            raise ValueError(f"free must name what to fit: a field name, a list of them, or a dict (e.g. "
+                             f"'restitution' or {{'mass': ['ball']}}), got {spec!r}. Fields: {FIELDS}.")
         if isinstance(spec, str):
             spec = {spec: True}
         elif not isinstance(spec, dict):
