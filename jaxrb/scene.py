@@ -356,7 +356,9 @@ class Scene:
         and ``"ground"`` (a per-body value). Per-body values are combined per pair by the
         rule of Box2D: **restitution is the larger of the two, friction their geometric
         mean** ``sqrt(mu_a mu_b)``; bodies not named take the default. Pair keys win over
-        body keys. Traced values pass through, so these are differentiable.
+        body keys. A body named must be in a contact pair (its value would be ignored). In a
+        scene without pairs the values are kept nowhere, but still checked. Traced values
+        pass through, so these are differentiable.
         """
         dtype = _canonical_dtype(dtype)
         declared = {type(m) for m in self.force_models}
