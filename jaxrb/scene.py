@@ -418,6 +418,8 @@ class Scene:
             g = self.gravity if self.gravity is not None else (0.0, 0.0, 0.0)
             gravity_arr = jnp.asarray(g, dtype=dtype)
         else:
+            if isinstance(gravity, (Mapping, str)):
+                raise ValueError(f"gravity must be a 3-vector (gx, gy, gz) in m/s^2, world frame, got {gravity!r}.")
             gravity_arr = jnp.asarray(gravity, dtype=dtype)
             if gravity_arr.shape != (3,):
                 raise ValueError(f"gravity must be a 3-vector (m/s^2), got shape {gravity_arr.shape}.")

@@ -442,6 +442,8 @@ def test_integrator_and_ode_switches_and_limits():
 def test_small_input_mistakes_are_explained():
     """Each of these had passed silently or failed with an error about something else."""
     scene = scene_of(BALL)
+    with pytest.raises(ValueError, match=r"gravity must be a 3-vector \(gx, gy, gz\)"):
+        scene.params(gravity={"z": -9.81})  # a TypeError from float()
     with pytest.raises(ValueError, match="dt must be a positive number"):
         rb.make_step(scene, rb.integrators.RK4(), "0.01")  # float("0.01") had passed
     for kwargs in ({"density": -1000.0}, {"mass": 0.0}, {"density": float("nan")}):
