@@ -48,8 +48,10 @@ def apex_clearances(traj, radius=0.1):
 def test_contact_pairs_all_and_listed():
     bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=BOX, mass=1.0),
               rb.Body("c", shape=rb.Capsule(0.05, 0.2), mass=1.0), rb.Body("d", mass=1.0, inertia=(1, 1, 1))]
-    scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
-    # "all": shaped bodies only, unsupported shape pairs (capsule-box) skipped, ground last.
+    # "all": shaped bodies only, unsupported shape pairs (capsule-box) skipped with a warning
+    # (they pass through each other: it had been silent), ground last.
+    with pytest.warns(UserWarning, match=r"no contact function for Box - Capsule.*\('b', 'c'\)"):
+        scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
     assert scene.contact_pairs == (("a", "b"), ("a", "c"), ("a", "ground"), ("b", "ground"), ("c", "ground"))
     listed = rb.Scene(bodies, ground=rb.Plane(), contacts=[("ground", "a"), ("a", "b")])
     assert listed.contact_pairs == (("a", "ground"), ("a", "b"))
@@ -399,6 +401,33 @@ def test_rod_landing_on_one_end(theta_deg):
     i_inv = np.linalg.inv(np.asarray(rb.world_inertia(params, state)[0]))
     j = rb.contact.collision_impulse(-v, jnp.array([0.0, 0, 1]), e, 1 / m, i_inv, r)
     np.testing.assert_allclose(j, expected, rtol=1e-12)
+
+
+@pytest.mark.xfail(strict=True, reason="known defect (README, 'Known limits of the impact law'): the normal "
+                   "impulse is not recomputed after the friction impulse of an off-centre impact")
+@pytest.mark.parametrize(("e", "mu"), [(1.0, 10.0), (0.5, 0.3)])
+def test_friction_keeps_the_rebound_of_an_off_centre_impact(e, mu):
+    """A rod (capsule, r = 2 cm, half length 0.3 m) at 45 degrees, falling at 3 m/s onto one
+    end, no spin: Newton's law wants the contact point to leave at e 3 m/s with friction or
+    without. With mu = 10 the contact sticks (no tangential velocity before or after), so
+    friction does no work and e = 1 keeps all the kinetic energy; with e = 0.5, mu = 0.3 it
+    slips one way throughout, where Poisson's and Newton's laws agree (an impulse-space,
+    Darboux-Keller, integration gives 1.5 m/s). Measured: 0.845 m/s and 39% of the energy
+    kept, and 0.646 m/s."""
+    radius, half = 0.02, 0.3
+    q = rb.spatial.quat_from_axis_angle(jnp.array([0.0, 1.0, 0.0]), jnp.pi / 4)
+    axis = np.asarray(rb.spatial.quat_rotate(q, jnp.array([0.0, 0.0, 1.0])))
+    arm = -half * axis - np.array([0.0, 0.0, radius])  # the lower end's contact point from the centre
+    scene = rb.Scene([rb.Body("rod", shape=rb.Capsule(radius, half), mass=1.0)], gravity=None,
+                     ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=e, friction=mu)
+    state = scene.state(params, position=-arm, orientation=q, velocity=(0.0, 0.0, -3.0))
+    after = rb.contact.resolve_impacts(scene, params, state)
+    point = np.asarray(after.velocity[0]) + np.cross(np.asarray(rb.angular_velocity(params, after)[0]), arm)
+    np.testing.assert_allclose(point[2], 3.0 * e, rtol=1e-6)
+    if mu == 10.0:
+        np.testing.assert_allclose(point[:2], 0.0, atol=1e-9)
+        np.testing.assert_allclose(float(rb.kinetic_energy(params, after)[0]), 4.5, rtol=1e-9)
 
 
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
