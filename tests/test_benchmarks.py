@@ -142,6 +142,9 @@ def test_ab_benchmark_quick(tmp_path):
     assert set(rows) == {"stack first 20", "stack settled 20"}
     for r in rows.values():
         assert len(r["a_times_s"]) == len(r["b_times_s"]) == 3 and r["b_over_a_min"] > 0
+    # The same code on both sides: the same program, line for line (its size is deterministic).
+    cost = rows["stack first 20"]
+    assert cost["a_cost"]["stablehlo_lines"] == cost["b_cost"]["stablehlo_lines"] > 1000
     assert record["a"]["source"] != record["b"]["source"]  # HEAD came from `git archive`
     assert (tmp_path / "ab.json").is_file() and (tmp_path / "ab.png").stat().st_size > 0
 
