@@ -437,6 +437,10 @@ def test_integrator_and_ode_switches_and_limits():
                             ({"max_steps": 0}, "max_steps must be a positive integer")]:
         with pytest.raises(ValueError, match=message):
             rb.ode.solve_with_impacts(ball, p, s, 1.0, max_impacts=2, **kwargs)
+    # Started 1 cm into the ground, it bounced about that depth, or spent every impact at
+    # t ~ 3e-8 s when at rest there.
+    with pytest.raises(ValueError, match=r"\('ball', 'ground'\) overlaps by 0.01 m at the start"):
+        rb.ode.solve_with_impacts(ball, p, ball.state(position=(0.0, 0.0, 0.09)), 1.0, max_impacts=2)
 
 
 def test_small_input_mistakes_are_explained():
