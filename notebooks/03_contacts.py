@@ -151,12 +151,15 @@ plt.show()
 # %% [markdown]
 # With the time of impact the apexes are $e^{2n}$ m to round-off (the first is 0.640000).
 # `examples/contacts_bounce.py` repeats the drop at $h$ = 1/60 s and gets the same
-# numbers. Without it, the impact is resolved at step boundaries instead of at the instant
-# of contact, and every apex comes out too high by an amount that shrinks with the step:
-# the first apex is 0.6746 m at $h$ = 10 ms, 0.6584 m at 5 ms and 0.6504 m at 2.5 ms, a
-# first-order error. After thirteen bounces the impact speed reaches the 0.25 m/s
-# restitution threshold, below which impacts are plastic; after a few last hops of about
-# 3 mm the ball is at rest on the ground, 4.05 s after the drop.
+# numbers. Without it, the impact is applied at the start of the step in which the ball
+# would reach the ground, while it is still up to $v h$ above it, so the ball turns back
+# early and every apex comes out too high, by $(1 - e^2)$ times that height: here the
+# last sample before the first impact is at $t$ = 0.45 s, 6.7 mm up, and the first apex
+# is 0.6424 m. (0.45 s is a whole number of steps at 10, 5 and 2.5 ms alike, so those
+# three step sizes give the same first apex; the later ones differ.) With the time of
+# impact, after thirteen bounces the impact speed falls below the 0.25 m/s restitution
+# threshold, below which impacts are plastic, and the ball is at rest on the ground
+# 3.87 s after the drop.
 
 # %% [markdown]
 # ## 3 · Coulomb friction: a sliding box and a rolling ball

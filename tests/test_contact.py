@@ -260,7 +260,9 @@ def test_bounce_apex_heights_do_not_depend_on_the_step(integrator, dt):
 
 
 def test_bounce_without_time_of_impact_is_only_first_order():
-    """The switch is real: without locating the impact the apex errs by O(v h)."""
+    """The switch is real: without locating the impact the ball turns back up to v h above
+    the ground, and the apex errs by up to (1 - e^2) v h (here 0.38%: the impact is applied
+    6.7 mm up)."""
     scene = ball_scene()
     params = scene.params(restitution=0.8)
     state = scene.state(params, position=(0, 0, 1.1))

@@ -71,7 +71,8 @@ class ContactSettings:
             converged. ``0``: the sweeps stop only once one changes nothing. The float32
             5-box stack of ``benchmarks/contacts.py`` ran 7.4 of its 20 sweeps a step on
             average over its first 200 steps and 1.1 over the last 1000 of 2 s (float64:
-            20 and 1.0). Under ``vmap`` every sweep runs.
+            20 and 1.0). Under ``vmap`` a sweep is skipped only once every member has
+            converged.
         impact_iterations: sweeps of sequential collisions per impact; momentum crosses
             one contact per sweep in the worst slot order (a row of ``n`` touching balls
             needs ``n - 1``).
