@@ -55,9 +55,9 @@ class RKMK4(Integrator):
       ``[|L|^2 / 2 I_max, |L|^2 / 2 I_min]``: no blow-up of the state. Its *derivatives*
       do blow up there: the truncated ``dexp^-1`` series grows like ``|theta|^2`` in the
       stages, which compound the rotation vector. A gradient through 200 steps (body
-      inertia (1, 2, 3)) was 0.017 at ``|omega| dt = 4``, 1e56 at 6 and NaN at 16, where
-      RK4's stayed below 0.1 (found by review, not fixed). Differentiate it only well
-      inside ``|omega| dt < 3``.
+      inertia (1, 2, 3), one spin direction) was 0.11 at ``|omega| dt = 1``, 0.17 at 2,
+      3e108 at 3, NaN at 4 and 16, where RK4's stayed below 0.1 (found by review, not
+      fixed). Differentiate it only at ``|omega| dt`` well below 3.
     """
 
     order: ClassVar[int] = 4
