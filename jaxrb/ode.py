@@ -25,7 +25,6 @@ gradients flow through the solve (discretise-then-optimise,
 from __future__ import annotations
 
 import dataclasses
-import numbers
 
 import diffrax
 import equinox as eqx
@@ -35,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import spatial
-from .contact._settings import static_switch
+from ._static import positive_count, static_switch
 from .dynamics import stage_derivative
 from .scene import Scene
 from .state import Params, State
@@ -228,13 +227,6 @@ def check_inputs(scene, params, state, where: str) -> None:
         )
 
 
-def _check_max_steps(max_steps) -> int:
-    """``max_steps`` as a Python int (any integer type: it is static), or a ``ValueError``."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
-    return int(max_steps)
-
-
 def _check_positive(name: str, value) -> None:
     v = _concrete(value)
     if v is not None and not (np.all(np.isfinite(v)) and np.all(v > 0)):
@@ -356,7 +348,7 @@ def solve(
         )
     _check_positive("rtol", rtol)
     _check_positive("atol", atol)
-    max_steps = _check_max_steps(max_steps)
+    max_steps = positive_count("max_steps", max_steps)
     step_to_ts, dense, throw = (static_switch(name, value) for name, value in
                                 (("step_to_ts", step_to_ts), ("dense", dense), ("throw", throw)))
     dtype = state.position.dtype
@@ -474,7 +466,7 @@ def solve_with_impacts(
     _check_times(jnp.asarray(state.time, state.position.dtype), t1, None, "rb.ode.solve_with_impacts")
     _check_positive("rtol", rtol)
     _check_positive("atol", atol)
-    max_steps = _check_max_steps(max_steps)
+    max_steps = positive_count("max_steps", max_steps)
     # A margin beyond any distance in the scene: every pair's separation is its true distance
     # (box pairs: the separating axes' lower bound, which has the same roots).
     ctx = _Ctx(scene, layout_of(scene), None, dataclasses.replace(settings, margin=1e6), 1.0)

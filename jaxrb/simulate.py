@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import numbers
 from collections.abc import Callable
 
 import equinox as eqx
@@ -21,9 +20,9 @@ import jax.flatten_util
 import jax.numpy as jnp
 
 from ._branch import branch
+from ._static import positive_count, static_step_length, static_switch
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
-from .contact._settings import static_step_length, static_switch
 from .contact._solver import SAVE_NAMED
 from .contact._step import contact_step, far_from_contact, free_step, initial_impulses, layout_of
 from .integrators import Integrator
@@ -516,11 +515,7 @@ def rollout(
         ``jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, trajectory)``.
     """
     # Any integer type (np.int64 from a config array too), as a Python int: they are static.
-    if isinstance(num_steps, bool) or not isinstance(num_steps, numbers.Integral) or num_steps < 1:
-        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}.")
-    if isinstance(save_every, bool) or not isinstance(save_every, numbers.Integral) or save_every < 1:
-        raise ValueError(f"save_every must be a positive integer, got {save_every!r}.")
-    num_steps, save_every = int(num_steps), int(save_every)
+    num_steps, save_every = positive_count("num_steps", num_steps), positive_count("save_every", save_every)
     checkpoint = static_switch("checkpoint", checkpoint)
     include_initial = static_switch("include_initial", include_initial)
     if num_steps % save_every:

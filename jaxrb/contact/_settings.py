@@ -6,10 +6,11 @@ import dataclasses
 import math
 import numbers
 
-import jax
 import numpy as np
 
-__all__ = ["ContactSettings", "static_step_length", "static_switch"]
+from .._static import static_switch
+
+__all__ = ["ContactSettings"]
 
 #: m/s: the approach speed the default margin covers in one step.
 DEFAULT_MARGIN_SPEED = 10.0
@@ -25,31 +26,6 @@ def _check(name: str, value, *, integer: bool = False, positive: bool = False, u
         kind = "a positive integer" if integer else ("a number in [0, 1]" if unit else
                                                        "a positive number" if positive else "a number >= 0")
         raise ValueError(f"ContactSettings.{name} must be {kind}, got {value!r}.")
-
-
-def static_step_length(dt, where: str) -> float:
-    """``dt`` (s) as a positive, finite Python float, or a ``ValueError`` that says what is wrong."""
-    if isinstance(dt, jax.core.Tracer):
-        raise ValueError("dt is static (a Python float): it cannot be traced or differentiated, and each "
-                         f"new value compiles a new step. Call {where} outside jit/grad/vmap.")
-    try:
-        if isinstance(dt, (str, bytes)):  # float("0.01") would pass
-            raise TypeError
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}.") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive, finite number of seconds, got {dt}.")
-    return dt
-
-
-def static_switch(name: str, value) -> bool:
-    """``value`` as a Python bool, or a ``ValueError``: a static switch takes ``True`` or
-    ``False`` (numpy's too), not any value Python would call true (``"no"`` is), nor a JAX
-    array (it would be traced inside the rollout's jit)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be True or False (a static switch), got {value!r}.")
-    return bool(value)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -53,6 +53,7 @@ from jax.ad_checkpoint import checkpoint_name
 from .. import spatial
 from .._branch import branch
 from .._indexing import literal_array, take_rows
+from .._static import static_step_length
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import GROUND, Scene
@@ -60,7 +61,7 @@ from ..shapes import Box, Capsule, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
 from ._layout import Layout, build_layout, detect, pair_separations, slot_values
 from ._lcp import solve_exact
-from ._settings import ContactSettings, static_step_length
+from ._settings import ContactSettings
 from ._solver import (
     SAVE_NAMED,
     SEPARATIONS,

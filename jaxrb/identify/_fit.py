@@ -10,7 +10,6 @@ experiment comes from ``jax.vmap`` over the leading axis of ``data`` and is aver
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import sys
 import time
 from collections.abc import Callable
@@ -22,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._static import positive_count
 from ..scene import Scene
 from ..state import Params
 from ._parameters import FreeParameters
@@ -146,13 +146,6 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _check_max_steps(max_steps) -> int:
-    """``max_steps`` as a Python int, or a ``ValueError`` (0 had returned an infinite loss)."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
-        raise ValueError(f"max_steps must be a positive integer (iterations), got {max_steps!r}.")
-    return int(max_steps)
-
-
 def _space(scene, params, free, friction_max) -> FreeParameters:
     if isinstance(free, FreeParameters):
         return free
@@ -208,7 +201,7 @@ def fit(
         A :class:`FitResult`: the fitted params (lowest loss seen), the loss history and a
         convergence flag.
     """
-    max_steps = _check_max_steps(max_steps)
+    max_steps = positive_count("max_steps", max_steps)  # 0 returned loss inf
     space = _space(scene, params, free, friction_max)
     objective = _objective(loss, data, batched, jnp.mean)
     optimizer = optax.with_extra_args_support(default_optimizer() if optimizer is None else optimizer)
@@ -320,7 +313,7 @@ def fit_least_squares(
     Returns:
         A :class:`FitResult`; ``loss`` is ``sum(residuals**2) / 2``.
     """
-    max_steps = _check_max_steps(max_steps)
+    max_steps = positive_count("max_steps", max_steps)  # 0 returned loss inf
     space = _space(scene, params, free, friction_max)
     vector = _objective(residuals, data, batched, jnp.ravel)
     flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())
