@@ -24,7 +24,7 @@ from ._static import positive_count, static_step_length, static_switch
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
 from .contact._solver import SAVE_NAMED
-from .contact._step import contact_step, far_from_contact, free_step, initial_impulses, layout_of
+from .contact._step import contact_step, far_from_contact, free_step, impulse_shape, initial_impulses
 from .integrators import Integrator
 from .scene import Scene
 from .state import Params, State
@@ -55,9 +55,8 @@ class Step(eqx.Module):
         state = self.integrator.prepare(state)
         if not self.scene.contact_pairs:
             return dataclasses.replace(state, contact_impulse=None)
-        zeros = initial_impulses(self.scene, state.position.dtype)
-        if state.contact_impulse is None or jnp.shape(state.contact_impulse) != zeros.shape:
-            state = dataclasses.replace(state, contact_impulse=zeros)
+        if state.contact_impulse is None or jnp.shape(state.contact_impulse) != impulse_shape(self.scene):
+            state = dataclasses.replace(state, contact_impulse=initial_impulses(self.scene, state.position.dtype))
         return state
 
     @eqx.filter_jit
@@ -91,7 +90,7 @@ class Step(eqx.Module):
 def _check_impulses(scene: Scene, state: State) -> None:
     """Refuse warm-start impulses of another scene's shape (which failed inside the step's
     ``cond`` with a message about its branches' shapes)."""
-    need = (layout_of(scene).num_slots, 3)
+    need = impulse_shape(scene)
     have = None if state.contact_impulse is None else jnp.shape(state.contact_impulse)
     if have is not None and have != need:
         raise ValueError(f"State.contact_impulse has shape {have}; this scene's contact slots need {need}: the "
@@ -160,6 +159,9 @@ def make_step(
         )
     dt = static_step_length(dt, "make_step")
     debug = static_switch("debug", debug)
+    if contact is not None and not scene.contact_pairs:
+        raise ValueError("contact settings need a scene with contact pairs (Scene(..., contacts=...)); this "
+                         "scene has none, so they would be ignored. Leave contact out.")
     if contact is None:
         contact = ContactSettings()
     if not isinstance(contact, ContactSettings):

@@ -942,6 +942,14 @@ def test_bad_max_penetration_is_refused(kwargs, message):
         rb.make_step(rb.Scene([rb.Body("b", shape=BOX, mass=1.0)]), SPLIT, 1e-3, debug=True, max_penetration=0.1)
 
 
+def test_contact_settings_for_a_scene_without_contacts_are_refused():
+    """They had been accepted and ignored; the default (None) is still fine."""
+    bare = rb.Scene([rb.Body("b", shape=BOX, mass=1.0)])
+    with pytest.raises(ValueError, match="contact settings need a scene with contact pairs"):
+        rb.make_step(bare, SPLIT, 1e-3, contact=rb.ContactSettings(solver="exact"))
+    assert rb.make_step(bare, SPLIT, 1e-3).scene is bare
+
+
 # ================================================================ no NaN, gradients
 
 

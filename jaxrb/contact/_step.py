@@ -113,8 +113,13 @@ def free_scene_of(scene: Scene) -> Scene:
     return dataclasses.replace(scene, gravity=None, forces=(), contacts=())
 
 
+def impulse_shape(scene: Scene) -> tuple[int, int]:
+    """The shape of ``State.contact_impulse`` in this scene: one ``(n, t1, t2)`` row per slot."""
+    return (layout_of(scene).num_slots, 3)
+
+
 def initial_impulses(scene: Scene, dtype) -> jax.Array:
-    return jnp.zeros((layout_of(scene).num_slots, 3), dtype)
+    return jnp.zeros(impulse_shape(scene), dtype)
 
 
 # ----------------------------------------------------------------------------- pieces

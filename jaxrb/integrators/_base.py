@@ -52,14 +52,9 @@ class Integrator(eqx.Module):
 
 def truth_value(value):
     """``value`` as a Python ``bool`` when it is NumPy's; anything else unchanged, for
-    :func:`check_switch` to refuse. A field converter, as :func:`whole_number`."""
+    the class's check (``jaxrb._static.static_switch``) to refuse. A field converter, as
+    :func:`whole_number`."""
     return bool(value) if isinstance(value, np.bool_) else value
-
-
-def check_switch(owner: str, name: str, value) -> None:
-    """Refuse a static switch that is not ``True`` or ``False``: ``"no"`` had counted as true."""
-    if not isinstance(value, bool):
-        raise ValueError(f"{owner}({name}=...) must be True or False (a static switch), got {value!r}.")
 
 
 def whole_number(value):

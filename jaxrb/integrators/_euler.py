@@ -10,9 +10,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import spatial
+from .._static import static_switch
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, angular_velocity, inverse_inertia_body
-from ._base import Integrator, check_switch, truth_value
+from ._base import Integrator, truth_value
 
 __all__ = ["ExplicitEuler", "SemiImplicitEuler"]
 
@@ -56,7 +57,7 @@ class ExplicitEuler(Integrator):
     order: ClassVar[int] = 1
 
     def __check_init__(self):
-        check_switch("ExplicitEuler", "reorthonormalize", self.reorthonormalize)
+        static_switch("ExplicitEuler(reorthonormalize=...)", self.reorthonormalize)
 
     def prepare(self, state: State) -> State:
         if state.rotation is not None:

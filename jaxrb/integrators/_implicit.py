@@ -16,9 +16,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import spatial
+from .._static import static_switch
 from ..dynamics import linear_acceleration, wrench
 from ..state import Params, State, body_inertia, inverse_inertia_body
-from ._base import Integrator, check_switch, truth_value, whole_number
+from ._base import Integrator, truth_value, whole_number
 from ._composition import kick_drift_kick
 
 __all__ = ["ImplicitGyroscopic", "ImplicitMidpoint"]
@@ -146,7 +147,7 @@ class ImplicitGyroscopic(Integrator):
     def __check_init__(self):
         _check_iterations("ImplicitGyroscopic", self.iterations)
         _check_iterations("ImplicitGyroscopic", self.stages, "stages")
-        check_switch("ImplicitGyroscopic", "safeguard", self.safeguard)
+        static_switch("ImplicitGyroscopic(safeguard=...)", self.safeguard)
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         force, torque = wrench(scene, params, state)
@@ -284,7 +285,7 @@ class ImplicitMidpoint(Integrator):
     def __check_init__(self):
         _check_iterations("ImplicitMidpoint", self.iterations)
         _check_iterations("ImplicitMidpoint", self.stages, "stages")
-        check_switch("ImplicitMidpoint", "safeguard", self.safeguard)
+        static_switch("ImplicitMidpoint(safeguard=...)", self.safeguard)
 
     def step(self, scene, params: Params, state: State, dt: float) -> State:
         def rotate(params, orientation, angular_momentum, dt):
