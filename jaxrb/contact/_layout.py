@@ -24,7 +24,7 @@ from .._indexing import literal_array, take_rows
 from ..collision import Contact, collide, concatenate_contacts, max_contacts
 from ..collision._box import box_box_separation
 from ..scene import GROUND, Scene
-from ..shapes import Box
+from ..shapes import Box, Sphere
 from ..state import State
 
 __all__ = ["Layout", "build_layout", "detect", "pair_separations", "slot_values"]
@@ -57,6 +57,10 @@ class Layout:
             pair's ``K`` slots in a row, ``K`` the most of any pair), ``C`` marking
             padding; no two pairs of one colour share a dynamic body. The impact pass
             visits the pairs in this order (:func:`jaxrb.contact._solver.collisions`).
+        central: every slot's normal passes through the centres of mass of both its bodies
+            (centred spheres against each other or the static ground), so a normal impulse makes
+            no slip there (the Delassus block's ``K_tn`` is 0) and the impact law needs no
+            coupling of friction and restitution (:func:`jaxrb.contact._solver.collisions`).
     """
 
     num_bodies: int
@@ -66,6 +70,7 @@ class Layout:
     pair: tuple[int, ...]
     colours: tuple[tuple[int, ...], ...]
     pair_colours: tuple[tuple[tuple[int, ...], ...], ...]
+    central: bool
 
     @property
     def num_slots(self) -> int:
@@ -161,7 +166,15 @@ def build_layout(scene: Scene) -> Layout:
     width = max((len(c) for c in colours), default=0)
     padded = tuple(tuple(c + [len(body_a)] * (width - len(c))) for c in colours)
     return Layout(n, tuple(groups), tuple(body_a), tuple(body_b), tuple(pair), padded,
-                  _pair_colours(body_a, body_b, pair, n))
+                  _pair_colours(body_a, body_b, pair, n), all(_central(scene, g) for g in groups))
+
+
+def _central(scene: Scene, g: _Group) -> bool:
+    """Whether each contact of the group lies on the line through both centres of mass."""
+    def centred_sphere(shape, bodies):
+        return isinstance(shape, Sphere) and not any(any(scene.bodies[i].shape_offset) for i in bodies)
+    return centred_sphere(g.shape_a, g.body_a) and (
+        all(i == scene.num_bodies for i in g.body_b) or centred_sphere(g.shape_b, g.body_b))
 
 
 def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:

@@ -21,13 +21,15 @@ after the other. The sweep count is bounded, and every loop that reverse mode cr
 ``lax.scan``; the step's solve (:func:`solve`), whose derivative a custom rule gives, ends
 its sweeps in a ``lax.while_loop`` once they stop changing the impulses.
 
-Energy. Every single update is chosen so that it cannot add kinetic energy: an impulse
-``dP`` changes it by ``u . dP + dP.K dP / 2``. A normal push is capped at ``2|u_n|/K_nn``
-(the elastic bound; without it, friction that has already slowed the approach would let
-Newton's law add energy, Kane's paradox), and a friction update is a projected-gradient
-step of length ``1/k_max``, which only descends. So an impact with ``e <= 1`` never
-creates energy, whatever the iteration count. (The split impulse's solve, ``normal_only=True``,
-has no cap: its pseudo-velocities move only positions.)
+Energy. Every update of the resting solve is chosen so that it cannot add kinetic energy:
+an impulse ``dP`` changes it by ``u . dP + dP.K dP / 2``. A normal push is capped at
+``2|u_n|/K_nn`` (the elastic bound; without it, friction that has already slowed the
+approach would let Newton's law add energy, Kane's paradox), and a friction update is a
+projected-gradient step of length ``1/k_max``, which only descends. (The split impulse's
+solve, ``normal_only=True``, has no cap: its pseudo-velocities move only positions.) An
+impact (:func:`collisions`) gives back in restitution at most the energy its compression
+took, and its friction only takes energy, so no impact with ``e <= 1`` creates energy,
+whatever the iteration count.
 """
 
 from __future__ import annotations
@@ -42,6 +44,14 @@ from jaxtyping import Array, Float
 from .. import spatial
 from .._branch import branch
 from .._indexing import literal_array
+from ._coulomb import (
+    coulomb_impulse,
+    energy_change,
+    fraction_within,
+    friction_for_normal_impulse,
+    impulse_to_normal_velocity,
+    largest_fraction,
+)
 
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a resting solve's impulses and
 #: velocities (not the split impulse's: see :func:`_pgs_jvp`).
@@ -285,18 +295,46 @@ def _update(c: _Colour, v, lam, target, mu, on, normal_only: bool):
     return v, jnp.concatenate([new_n[:, None], lam[:, 1:] + d_t], -1)
 
 
-def _collision_update(c: _Colour, v, e, mu, eligible, threshold):
-    """Binary collisions of one colour's slots that approach faster than ``threshold``.
+def _impact(k, u, e, mu):
+    """One contact's impact ``(3,)`` (slot basis), Poisson's hypothesis with Coulomb friction.
 
-    The seed's impulse from the *current* relative velocity, ``j = -(1 + e) u_n / K_nn``,
-    then friction bounded by ``mu j``. Impulses are new each time (never taken back), as in
-    a sequence of two-body collisions.
-    """
+    Compression brings ``u_n`` to 0 with friction (sticking, or sliding opposite the slip it
+    leaves), then restitution adds ``e`` times its normal impulse, with friction again
+    (:mod:`._coulomb`). It is cut where it would give back more kinetic energy than
+    compression took, so no impact with ``e <= 1`` gains energy. Each phase is one
+    implicit step: exact where the contact sticks at the phase's end or slides one way
+    throughout it (``u_n' = -e u_n`` then, as Newton's law has it)."""
+    compression = impulse_to_normal_velocity(k, u, jnp.zeros_like(e), mu)
+    taken = jnp.maximum(-energy_change(k, u, compression), 0.0)
+    u = u + k @ compression
+    restitution = friction_for_normal_impulse(k, u, e * compression[0], mu)
+    return compression + largest_fraction(k, u, restitution, taken) * restitution
+
+
+def _central_collision_update(c: _Colour, v, e, mu, eligible, threshold):
+    """:func:`_collision_update` where the contact's normal passes through both centres of
+    mass (``K_tn = 0``: ``Layout.central``): the seed's impulse ``j = -(1 + e) u_n / K_nn``,
+    then friction bounded by ``mu j``, one projected-gradient step (the sticking impulse
+    when ``K_tt`` is isotropic, as for uniform spheres). Without the coupling a normal impulse
+    makes no slip and friction changes no ``u_n``, so this is Poisson's law with Coulomb
+    friction there, at a small part of :func:`_impact`'s program."""
     u = _local_velocity(c, v)
     hit = eligible & (u[:, 0] < -threshold)
     j = jnp.where(hit, -(1.0 + e) * u[:, 0] * c.inv_k_nn, 0.0)
-    d_t = _friction_step(c, _slip_after(c, u, j), jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
+    d_t = _friction_step(c, u[:, 1:], jnp.zeros((j.shape[0], 2), j.dtype), mu * j, hit)
     impulse = jnp.concatenate([j[:, None], d_t], -1)
+    return _local_apply(c, v, impulse), impulse
+
+
+def _collision_update(c: _Colour, v, k, e, mu, eligible, threshold):
+    """Binary collisions of one colour's slots that approach faster than ``threshold``:
+    :func:`_impact` from the *current* relative velocity, the seed's impulse
+    ``j = -(1 + e) u_n / K_nn`` where there is no friction. Impulses are new each time
+    (never taken back), as in a sequence of two-body collisions. ``k`` ``(W, 3, 3)``: the
+    slots' Delassus blocks."""
+    u = _local_velocity(c, v)
+    hit = eligible & (u[:, 0] < -threshold)
+    impulse = jnp.where(hit[:, None], jax.vmap(_impact)(k, u, e, mu), 0.0)
     return _local_apply(c, v, impulse), impulse
 
 
@@ -382,6 +420,12 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
 #: error after 4 / 8 / 12 / 16 passes: a box landing flat (4 slots) 3e-4, 2e-7, 9e-12,
 #: 1e-14; a capsule landing on its side (2 slots) 3e-3, 2e-6, 2e-9, 1e-12.
 PAIR_PASSES = 12
+#: Gauss-Seidel passes over a pair's slots with friction, in compression (after the
+#: frictionless ones) and in restitution. One is exact for a pair touching at one slot.
+#: A box (0.05, 0.1, 0.3) tilted 30 degrees, landing on an edge (2 slots) at 3 m/s, e = 1,
+#: mu = 10 (it sticks), the edge's ends leave at, after 4 / 8 / 16 / 32 passes: 3.040 and
+#: 2.953, 3.012 and 2.987, 3.0010 and 2.9990, 3.000006 and 2.999994 m/s (exact: 3.0).
+FRICTION_PASSES = 16
 
 
 def _slot_major(c: _Colour) -> _Colour:
@@ -395,22 +439,31 @@ def _safe_sqrt(x):
 
 
 def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
-    """One impact of ``W`` pairs of ``K`` slots each, all slots of a pair at once (Poisson's
-    hypothesis): compression, restitution, then friction over the whole impulse.
+    """One impact of ``W`` pairs of ``K`` slots each, all slots of a pair at once, by Poisson's
+    hypothesis with Coulomb friction in both phases. Gauss-Seidel passes over the slots, in
+    order; each update solves one slot's whole impulse of its phase exactly, with the other
+    slots' held (:func:`._coulomb.coulomb_impulse`):
 
-    1. Compression: ``PAIR_PASSES`` projected Gauss-Seidel passes to ``u_n >= 0`` on the
-       ``on`` slots, normal impulses only (a frictionless plastic impact), keeping the
-       kinetic energy it takes, ``-sum(d u_n + K_nn d^2 / 2)`` over its updates.
-    2. Restitution: ``e`` times each slot's compression impulse along its normal, slot by
-       slot, each cut where it would give back more energy than compression took. For
-       one slot this is the seed's impulse, ``(1 + e)`` times the plastic one; for a box
-       landing flat it is symmetric, where colliding the corners one by one is not.
-    3. Friction: ``PAIR_PASSES`` passes of projected-gradient steps, each slot's impulse
-       in the disk of ``mu`` times its whole normal impulse (as a one-slot pair's,
-       :func:`_collision_update`). Friction during compression, slot by slot, made a box
-       landing flat with no slip turn (3e-5 kg m^2/s at 4.4 m/s), then land tilted.
-    Every update takes no energy it is not allowed to: restitution gives back at most
-    what compression took, and friction steps only descend.
+    1. Compression without friction: ``PAIR_PASSES`` passes to ``u_n = 0`` (``u_n >= 0``:
+       impulses stay >= 0). For a box landing flat with no slip this is already the whole
+       compression, symmetric; with friction from the first pass, slot by slot, such a box
+       turned (3e-5 kg m^2/s at 4.4 m/s) and landed tilted.
+    2. Compression with friction: ``FRICTION_PASSES`` passes to ``u_n = 0``, each slot
+       sticking or sliding opposite the slip it leaves.
+    3. Restitution: ``e`` times each slot's compression impulse along its normal, with its
+       friction, cut where it would give back more kinetic energy than the pair's
+       compression took; then ``FRICTION_PASSES`` passes solving each slot's restitution
+       friction again (these only take energy).
+
+    For a pair touching at one slot one pass of 2 and 3 is exact: a contact that sticks,
+    or slides one way, leaves at ``u_n' = -e u_n`` (a rod landing on its end,
+    ``test_friction_keeps_the_rebound_of_an_off_centre_impact``). Until 2026-11-29 friction
+    came after restitution, from the frictionless normal impulses, and changed ``u_n``
+    through ``K_tn``: that rod left at 0.845 m/s instead of 3.0 (e = 1, mu = 10), keeping
+    39% of its energy. No update adds energy it is not allowed to, so no impact with
+    ``e <= 1`` gains energy. All phases share one program (a traced phase per pass): the
+    dropped box's 300-step gradient is 79,946 lines of StableHLO (70,453 before, friction
+    after restitution; 86,635 with the frictionless passes a program of their own).
 
     ``k_slot`` ``(W, K, 3, 3)``: the slots' Delassus blocks; ``pair`` ``(W, 12)``: the
     pairs' twists; ``e``, ``mu``, ``on`` ``(W, K)``. Returns the twists and the impulses
@@ -426,72 +479,78 @@ def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
     # same values (the gradient to 1.2e-15), the same run times within noise
     # (benchmarks/README.md, "What a contact derivative program is made of").
     slots = _slot_major(c)
-    k_nn, e, mu, on = (jnp.moveaxis(x, 1, 0) for x in (k_slot[..., 0, 0], e, mu, on))
+    k, e, mu, on = (jnp.moveaxis(x, 1, 0) for x in (k_slot, e, mu, on))
 
-    def compress(carry, inputs):
-        pair, taken = carry
-        s, lam_k, on_k, k_nn_k = inputs
-        u_n = _local_velocity(s, pair)[:, 0]
-        pair, new = _update(s, pair, lam_k, zero, zero, on_k, True)
-        d = new[:, 0] - lam_k[:, 0]
-        return (pair, taken - d * u_n - 0.5 * k_nn_k * d * d), new
+    each = lambda f, *args: jax.vmap(f)(*args)  # noqa: E731  (over a colour's pairs)
 
-    def compression(carry, _):
-        pair, lam, taken = carry
-        (pair, taken), lam = jax.lax.scan(compress, (pair, taken), (slots, lam, on, k_nn))
-        return (pair, lam, taken), None
+    # Passes of one program (a traced ``phase`` per pass): -1, compression without
+    # friction; 0, compression with friction, each slot's impulse brought to u_n = 0 with the
+    # others held; 1, restitution, e times each slot's compression impulse with its
+    # friction; 2, each slot's restitution friction solved again with the others held.
+    # ``taken`` counts the kinetic energy compression takes, less what restitution gives back.
+    def slot_update(carry, inputs):
+        pair, taken, phase = carry
+        s, lam_k, rest_k, on_k, k_k, e_k, mu_k = inputs
+        compressing = phase <= 0
+        own = jnp.where(compressing, lam_k, rest_k)
+        u = _local_velocity(s, pair)
+        value = jnp.where(compressing, 0.0, jnp.where(phase == 1, e_k * lam_k[:, 0], rest_k[:, 0]))
+        new = each(coulomb_impulse, k_k, u - spatial.matvec(k_k, own), jnp.where(phase < 0, 0.0, mu_k), value,
+                   jnp.broadcast_to(compressing, value.shape))
+        change = jnp.where(on_k[:, None], new, 0.0) - own
+        taken = taken - each(energy_change, k_k, u, change)
+        lam_k, rest_k = jnp.where(compressing, lam_k + change, lam_k), jnp.where(compressing, rest_k, rest_k + change)
+        return (_local_apply(s, pair, change), taken, phase), (lam_k, rest_k)
 
-    start = (pair, jnp.zeros((depth, width, 3), pair.dtype), zero)
-    (pair, lam, taken), _ = jax.lax.scan(compression, start, None, length=PAIR_PASSES)
+    def one_pass(carry, phase):
+        pair, lam, rest, taken, compressed = carry
+        # The pair as compression left it, and the energy it took (kept at the first
+        # restitution pass).
+        compressed = jax.tree.map(lambda new, old: jnp.where(phase == 1, new, old), (pair, taken), compressed)
+        (pair, taken, _), (lam, rest) = jax.lax.scan(slot_update, (pair, taken, phase),
+                                                     (slots, lam, rest, on, k, e, mu))
+        return (pair, lam, rest, taken, compressed), None
 
-    def restitute(carry, inputs):
-        pair, budget = carry
-        s, lam_k, on_k, k_nn_k, e_k = inputs
-        u_n = _local_velocity(s, pair)[:, 0]
-        # The largest push p with p u_n + k_nn p^2 / 2 <= budget.
-        most = (_safe_sqrt(u_n * u_n + 2.0 * k_nn_k * budget) - u_n) * s.inv_k_nn
-        push = jnp.where(on_k, jnp.clip(e_k * lam_k[:, 0], 0.0, most), 0.0)
-        budget = jnp.maximum(budget - push * u_n - 0.5 * k_nn_k * push * push, 0.0)
-        pair = _local_apply(s, pair, jnp.stack([push, zero, zero], -1))
-        return (pair, budget), lam_k.at[:, 0].add(push)
-
-    (pair, _), lam = jax.lax.scan(restitute, (pair, jnp.maximum(taken, 0.0)), (slots, lam, on, k_nn, e))
-
-    def rub(pair, inputs):
-        s, lam_k, on_k, mu_k = inputs
-        d_t = _friction_step(s, _local_velocity(s, pair)[:, 1:], lam_k[:, 1:], mu_k * lam_k[:, 0], on_k)
-        pair = _local_apply(s, pair, jnp.concatenate([zero[:, None], d_t], -1))
-        return pair, lam_k.at[:, 1:].add(d_t)
-
-    def friction(carry, _):
-        pair, lam = carry
-        return jax.lax.scan(rub, pair, (slots, lam, on, mu)), None
-
-    (pair, lam), _ = jax.lax.scan(friction, (pair, lam), None, length=PAIR_PASSES)
-    return pair, jnp.moveaxis(lam, 0, 1)
+    phases = literal_array([-1] * PAIR_PASSES + [0] * FRICTION_PASSES + [1] + [2] * FRICTION_PASSES)
+    lam = jnp.zeros((depth, width, 3), pair.dtype)
+    start = (pair, lam, lam, zero, (pair, zero))
+    (pair, lam, rest, taken, (compressed, budget)), _ = jax.lax.scan(one_pass, start, phases)
+    # Restitution gives back at most what compression took: its change of kinetic energy is
+    # theta a + theta^2 c for theta times its impulses (a linear in them, c >= 0), so the
+    # largest theta <= 1 within the budget is a root. It binds only where Poisson's law
+    # would gain energy (and, by a rounding, at e = 1). The twists are linear in the
+    # impulses, so theta scales their change.
+    linear = jnp.sum(jax.vmap(lambda s_k, r_k: jnp.sum(_local_velocity(s_k, compressed) * r_k, -1))(slots, rest), 0)
+    theta = fraction_within(linear, (budget - taken) - linear, jnp.maximum(budget, 0.0))
+    pair = compressed + theta[:, None] * (pair - compressed)
+    rest = theta[None, :, None] * rest
+    return pair, jnp.moveaxis(lam + rest, 0, 1)
 
 
-def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible, threshold, iterations: int):
-    """Newton's impact law, pair after pair, ``iterations`` sweeps; impulses ``(C, 3)``.
+def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible, threshold, iterations: int,
+               central: bool = False):
+    """The impact law, pair after pair, ``iterations`` sweeps; impulses ``(C, 3)``.
 
     A pair (two bodies) with a touching slot approaching faster than ``threshold``
     collides, with new impulses each time. Pairs collide one after another, so momentum
     travels along a row of touching bodies as a sequence of collisions (Newton's cradle)
-    rather than being shared by a simultaneous solve. A pair of one slot gets the seed's
-    impulse from its current relative velocity, ``j = -(1 + e) u_n / (n . K n)``, then
-    friction bounded by ``mu j`` (:func:`_collision_update`). A pair of several slots
-    collides on all its touching slots at once (:func:`_pair_impact`): colliding them one
-    by one, a box landing flat on four corners at 3 m/s (e = 0.8) rebounded at 2.10 m/s
-    instead of 2.40, spinning, and one dropped flat with friction slid 0.52 m in 1.2 s. Each collision with
-    ``e <= 1`` adds no energy.
+    rather than being shared by a simultaneous solve. Each collision follows Poisson's
+    hypothesis with Coulomb friction: compression to ``u_n = 0``, then ``e`` times its
+    normal impulse, friction acting in both phases (:func:`_impact`). Without friction, or
+    where the contact sticks or slides one way, the contact leaves at ``u_n' = -e u_n``
+    (Newton's law), with the seed's impulse ``j = -(1 + e) u_n / (n . K n)`` where there is
+    no friction. A pair of several slots collides on all its touching slots at once
+    (:func:`_pair_impact`): colliding them one by one, a box landing flat on four corners
+    at 3 m/s (e = 0.8) rebounded at 2.10 m/s instead of 2.40, spinning, and one dropped flat
+    with friction slid 0.52 m in 1.2 s. Each collision with ``e <= 1`` adds no energy.
 
     ``colours``: the slot colours (used where every pair has one slot); ``pair_colours``:
     ``(num_pair_colours, W, K)`` slot indices (:attr:`Layout.pair_colours`); ``e``, ``mu``,
-    ``eligible`` (touching): ``(C,)``.
+    ``eligible`` (touching): ``(C,)``; ``central``: :attr:`Layout.central` (static).
     """
     idx = jnp.asarray(pair_colours)
     if idx.shape[-1] == 1:
-        return _slot_collisions(bodies, f, colours, e, mu, eligible, threshold, iterations)
+        return _slot_collisions(bodies, f, colours, e, mu, eligible, threshold, iterations, central)
     pad1 = lambda x, v: jnp.concatenate([x, jnp.full((1, *x.shape[1:]), v, x.dtype)])  # noqa: E731
     e, mu, eligible = pad1(e, 0.0), pad1(mu, 0.0), pad1(eligible, False)
     _, width, _ = idx.shape
@@ -529,21 +588,25 @@ def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible
     return bodies, per_slot[:-1]
 
 
-def _slot_collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, iterations: int):
+def _slot_collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, threshold, iterations: int,
+                     central: bool):
     """:func:`collisions` where every pair has one slot: slot colours, ``iterations`` sweeps.
 
-    Each slot approaching faster than ``threshold`` gets Newton's impulse with its ``e`` from
-    its current velocity, so momentum travels along a row of touching bodies as a sequence
-    of collisions (Newton's cradle) rather than being shared by a simultaneous solve. Each
-    collision with ``e <= 1`` and its bounded friction cannot add energy. ``e``, ``mu`` and
-    ``eligible`` are ``(C,)``.
+    Each slot approaching faster than ``threshold`` collides (:func:`_collision_update`, or
+    :func:`_central_collision_update` where ``central``) from its current velocity, so
+    momentum travels along a row of touching bodies as a sequence of collisions (Newton's
+    cradle) rather than being shared by a simultaneous solve. No collision with ``e <= 1``
+    adds energy. ``e``, ``mu`` and ``eligible`` are ``(C,)``.
     """
     pad1 = lambda x, v: jnp.concatenate([x, jnp.full((1, *x.shape[1:]), v, x.dtype)])  # noqa: E731
     e, mu, eligible = pad1(e, 0.0), pad1(mu, 0.0), pad1(eligible, False)
     total = jnp.zeros((e.shape[0], 3), bodies.velocity.dtype)
 
-    def update(c, v, total, e, mu, eligible):
-        v, impulse = _collision_update(c, v, e, mu, eligible, threshold)
+    def update(c, v, total, k, e, mu, eligible):
+        if central:
+            v, impulse = _central_collision_update(c, v, e, mu, eligible, threshold)
+        else:
+            v, impulse = _collision_update(c, v, k, e, mu, eligible, threshold)
         return v, total + impulse
 
     # A sweep with no collision changes nothing, so every later sweep would be the same:
@@ -554,7 +617,7 @@ def _slot_collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, thresh
     # kernels a step. (The solver's sweeps gain nothing from it: a settled stack's
     # derivative does not cross them, and the 3-box stack's reverse pass ran 2.6% more
     # kernels with it.)
-    bodies, total, _ = _colour_sweeps(bodies, f, colours, (e, mu, eligible), total, update, iterations, 0.0,
+    bodies, total, _ = _colour_sweeps(bodies, f, colours, (f.delassus, e, mu, eligible), total, update, iterations, 0.0,
                                       recompute=True)
     return bodies, total[:-1]
 

@@ -220,7 +220,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     hit = branch(
         jnp.any(closing & (u_start < -settings.restitution_threshold)),
         jax.checkpoint(lambda b: collisions(b, f, colours, pair_colours, e, mu, closing, settings.restitution_threshold,
-                                            settings.impact_iterations)[0]),
+                                            settings.impact_iterations, layout.central)[0]),
         lambda b: b, start)
     velocity = hit.velocity[: scene.num_bodies] + kick_v
     momentum = _omega_to_momentum(params, state, hit.angular_velocity, start.angular_velocity,
@@ -342,7 +342,7 @@ def _impact(ctx: _Ctx, params: Params, state: State) -> State:
     e, mu = _slot_coefficients(ctx, params)
     touching = contact.active & (contact.gap <= TOUCHING)
     solved, _ = collisions(bodies, f, literal_array(layout.colours), literal_array(layout.pair_colours), e, mu,
-                           touching, settings.restitution_threshold, settings.impact_iterations)
+                           touching, settings.restitution_threshold, settings.impact_iterations, layout.central)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
                                   state.angular_momentum)
     return dataclasses.replace(state, velocity=solved.velocity[: scene.num_bodies], angular_momentum=momentum)

@@ -1,0 +1,152 @@
+"""One contact's frictional impulse, exactly: Coulomb's law with maximal dissipation.
+
+All quantities are in the contact's ``(n, t1, t2)`` basis. ``k`` ``(3, 3)`` is the
+contact's Delassus block (``u -> u + k P`` for an impulse ``P`` on the pair, N s -> m/s),
+``u`` ``(3,)`` the relative velocity it starts from (m/s), ``mu`` the friction
+coefficient. Coulomb's law for an impulse ``P = (p, x)`` taken as one implicit step
+(Moreau's): ``|x| <= mu p``, and either the contact sticks (``u_t' = 0``) or ``x`` is
+on the boundary, opposite the slip it leaves, ``x = -mu p u_t' / |u_t'|``. That ``x``
+is the minimiser of the kinetic energy over the disk,
+
+    x = argmin_{|x| <= mu p}  x . (u_t + k_tn p) + x . k_tt x / 2,
+
+so friction never adds energy whatever ``p`` is. These functions are written for one
+contact and vmapped; their loops have fixed lengths, so reverse mode crosses them.
+
+The impact law (:mod:`._solver`) uses them in two phases (Poisson's hypothesis):
+compression to ``u_n = 0`` with friction (:func:`impulse_to_normal_velocity`), then
+restitution, ``e`` times the compression's normal impulse with its own friction
+(:func:`friction_for_normal_impulse`). Each phase is one implicit step, which is exact
+where the contact sticks at the end of the phase or slides one way throughout it: the
+closed forms of a rod landing on its end (``u_n' = -e u_n``).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["coulomb_impulse", "energy_change", "fraction_within", "friction_for_normal_impulse",
+           "impulse_to_normal_velocity", "largest_fraction"]
+
+#: Iterations on the friction multiplier of a sliding contact: safeguarded Newton steps
+#: (a bisection of the bracket where a step would leave it), in one loop. On 20,000 random
+#: contacts (``K = R R^T + 0.1 I``, ``R`` and ``u`` standard normal, mu in [0.05, 2]),
+#: bringing ``u_n`` to a target missed it by more than 1e-9 m/s in 7 after 12 iterations,
+#: in none after 14 (at most 2.9e-10); with ``p`` given, none missed after 12. Two spare.
+ITERATIONS = 16
+
+
+def _where_positive(x, fallback=1.0):
+    return jnp.where(x > 0, x, fallback)
+
+
+def _solve2(a, lam, v):
+    """``(a + lam I)^-1 v`` for a symmetric positive semi-definite ``a`` ``(2, 2)``; 0 where singular."""
+    m00, m01, m11 = a[0, 0] + lam, a[0, 1], a[1, 1] + lam
+    det = m00 * m11 - m01 * m01
+    solved = jnp.stack([m11 * v[0] - m01 * v[1], m00 * v[1] - m01 * v[0]]) / _where_positive(det)
+    return jnp.where(det > 0, solved, 0.0)
+
+
+def _safe_sqrt(x):
+    """``sqrt(x)`` for ``x > 0``, else 0, with a finite derivative everywhere."""
+    return jnp.where(x > 0, jnp.sqrt(_where_positive(x)), 0.0)
+
+
+def _norm(v):
+    return _safe_sqrt(jnp.sum(v * v))
+
+
+def coulomb_impulse(k, u, mu, value, to_velocity):
+    """The impulse ``(p, x)`` ``(3,)``: ``p = value`` given (N s), or, where ``to_velocity``
+    (a bool, traced or not), the one that brings ``u_n`` to ``value`` (m/s); ``x`` by
+    Coulomb's law. 0 where ``p`` would not be positive: a contact pushes, it does not pull.
+
+    A sliding contact's friction is ``x(lam) = -(k_tt + lam I)^-1 (u_t + k_tn p)``: then
+    ``u_t' = -lam x``, opposite the impulse. ``lam = 0`` is sticking. Where that needs
+    more than ``mu p``, ``lam > 0`` is the root of ``1/|x(lam)| = 1/(mu p(lam))`` (Moré and
+    Sorensen's form, nearly linear in ``lam``), with ``p(lam)`` fixed, or from the normal
+    row, ``k_nn p + k_nt x = value - u_n``, solved for ``p``. Both kinds share one program:
+    the impact law's passes select theirs with a traced flag."""
+    a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
+    need = value - u[0]
+
+    def impulse(lam):
+        a_inv_c, a_inv_slip = _solve2(a, lam, coupling), _solve2(a, lam, slip)
+        normal = (need + jnp.dot(coupling, a_inv_slip)) / _where_positive(k[0, 0] - jnp.dot(coupling, a_inv_c))
+        p = jnp.where(to_velocity, normal, value)
+        return p, -(a_inv_slip + a_inv_c * p)
+
+    p_stick, x_stick = impulse(0.0)
+    sticks = (p_stick >= 0) & (jnp.sum(x_stick * x_stick) <= (mu * p_stick) ** 2)
+
+    # A bracket [0, hi] of the root: beyond hi, |x| < mu p. Fixed p: |x| <= |u_t + k_tn p| / lam.
+    # To a velocity, once lam >= s, p lies in [p_f / 2, 3 p_f] (p_f the frictionless
+    # p), and |x| <= (|u_t| + 3 |k_tn| p_f) / lam.
+    reference = jnp.where(to_velocity, need / _where_positive(k[0, 0]), value)
+    radius = _where_positive(mu * reference)
+    s = jnp.maximum(2 * jnp.dot(coupling, coupling) / _where_positive(k[0, 0]),
+                    2 * _norm(coupling) * _norm(slip) / _where_positive(need))
+    hi = jnp.where(to_velocity, jnp.maximum(s, 2 * (_norm(slip) + 3 * _norm(coupling) * reference) / radius),
+                   _norm(slip + coupling * value) / radius)
+    spread = _safe_sqrt((a[0, 0] - a[1, 1]) ** 2 / 4 + a[0, 1] ** 2)  # 0 for an isotropic k_tt
+    start = jnp.clip(_norm(slip + coupling * reference) / radius - (a[0, 0] + a[1, 1]) / 2 - spread, 0.0, hi)
+
+    def phi(lam):
+        p, x = impulse(lam)
+        # Where p(lam) <= 0 (to a velocity, at too small a lam), it is left of the root.
+        return jnp.where(mu * p > 0, 1.0 / _where_positive(_norm(x)) - 1.0 / _where_positive(mu * p), -1.0)
+
+    def newton(carry, _):
+        lam, lo, hi = carry
+        value, slope = jax.jvp(phi, (lam,), (jnp.ones_like(lam),))
+        lo, hi = jnp.where(value < 0, lam, lo), jnp.where(value < 0, hi, lam)
+        step = lam - value / _where_positive(slope)
+        inside = (slope > 0) & (step >= lo) & (step <= hi)  # (at the root itself: stay)
+        # Else bisect, geometrically: the bracket can span decades.
+        middle = jnp.where(hi > 10 * lo, jnp.sqrt(jnp.maximum(lo, 1e-3 * hi) * hi), (lo + hi) / 2)
+        return (jnp.where(inside, step, middle), lo, hi), None
+
+    (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
+    p, x = impulse(lam)
+    # On the disk (an iterate short of the root leaves |x| a little over mu p).
+    x = x * jnp.minimum(1.0, mu * p / _where_positive(_norm(x)))
+    slides = jnp.concatenate([jnp.reshape(p, (1,)), x])
+    stuck = jnp.concatenate([jnp.reshape(p_stick, (1,)), x_stick])
+    result = jnp.where(sticks, stuck, slides)
+    # Without friction the root is at lam = infinity: the frictionless impulse.
+    frictionless = jnp.concatenate([jnp.reshape(reference, (1,)), jnp.zeros_like(slip)])
+    result = jnp.where(mu > 0, result, frictionless)
+    return jnp.where(jnp.where(to_velocity, need, value) > 0, result, 0.0)
+
+
+def friction_for_normal_impulse(k, u, p, mu):
+    """The impulse ``(p, x)`` ``(3,)`` with the normal part ``p`` given (N s) and Coulomb's ``x``:
+
+        x = argmin_{|x| <= mu p}  x . (u_t + k_tn p) + x . k_tt x / 2."""
+    return coulomb_impulse(k, u, mu, p, False)
+
+
+def impulse_to_normal_velocity(k, u, target, mu):
+    """The impulse ``(3,)`` that brings ``u_n`` to ``target`` (m/s) under Coulomb's law
+    (0 where ``u_n >= target`` already: the contact pushes, it does not pull)."""
+    return coulomb_impulse(k, u, mu, target, True)
+
+
+def energy_change(k, u, impulse):
+    """The kinetic energy (J) an impulse ``(3,)`` adds: ``u . P + P . k P / 2``."""
+    return jnp.dot(u, impulse) + 0.5 * jnp.dot(impulse, k @ impulse)
+
+
+def fraction_within(linear, quadratic, budget):
+    """The largest ``theta`` in ``[0, 1]`` with ``theta linear + theta^2 quadratic <= budget``
+    (J; ``quadratic >= 0``, ``budget >= 0``): the quadratic is convex and 0 at ``theta = 0``."""
+    fits = linear + quadratic <= budget
+    root = (_safe_sqrt(linear * linear + 4 * quadratic * budget) - linear) / (2 * _where_positive(quadratic))
+    return jnp.where(fits, 1.0, jnp.clip(root, 0.0, 1.0))
+
+
+def largest_fraction(k, u, impulse, budget):
+    """The largest ``theta`` in ``[0, 1]`` with ``energy_change(k, u, theta impulse) <= budget``."""
+    return fraction_within(jnp.dot(u, impulse), 0.5 * jnp.dot(impulse, k @ impulse), budget)
