@@ -462,8 +462,11 @@ def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
     through ``K_tn``: that rod left at 0.845 m/s instead of 3.0 (e = 1, mu = 10), keeping
     39% of its energy. No update adds energy it is not allowed to, so no impact with
     ``e <= 1`` gains energy. All phases share one program (a traced phase per pass): the
-    dropped box's 300-step gradient is 79,946 lines of StableHLO (70,453 before, friction
-    after restitution; 86,635 with the frictionless passes a program of their own).
+    dropped box's gradient (``benchmarks/ab.py``'s ``drop``) is 83,006 lines of StableHLO,
+    against 70,453 with friction after restitution, and its impact steps cost more: its
+    gradient ran 4.1x as long, its forward 2.4x (benchmarks/README.md, "The impact law
+    with friction in both phases"). With the frictionless passes a program of their own,
+    the program was about 7% larger again.
 
     ``k_slot`` ``(W, K, 3, 3)``: the slots' Delassus blocks; ``pair`` ``(W, 12)``: the
     pairs' twists; ``e``, ``mu``, ``on`` ``(W, K)``. Returns the twists and the impulses
