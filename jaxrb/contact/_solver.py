@@ -277,8 +277,7 @@ def _update(c: _Colour, v, lam, target, mu, on, normal_only: bool):
 
     ``normal_only``: normal impulses only, without the elastic bound. For the split
     impulse (its pseudo-velocities start from rest, ``u_n = 0``, where the bound would allow
-    no push at all, and move only the positions, so they carry no kinetic energy to bound)
-    and an impact's compression (target 0, where the bound never binds)."""
+    no push at all, and move only the positions, so they carry no kinetic energy to bound)."""
     u = _local_velocity(c, v)
     # Normal: reach u_n = target, keep lambda_n >= 0, and never push past the elastic bound.
     step = (target - u[:, 0]) * c.inv_k_nn
@@ -431,11 +430,6 @@ FRICTION_PASSES = 16
 def _slot_major(c: _Colour) -> _Colour:
     """The slots of a pair colour first: fields ``(W, K, ...)`` -> ``(K, W, ...)``."""
     return jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), c)
-
-
-def _safe_sqrt(x):
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
 def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
