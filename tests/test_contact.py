@@ -489,6 +489,17 @@ def test_one_contacts_coulomb_impulse_meets_its_conditions():
             assert np.all(energy(x) <= energy(ring).min(axis=1) + 1e-9)
             assert np.all(energy(x) <= 1e-15)
 
+    # Finite derivatives at the degenerate contacts: no slip, nothing to push, nothing given
+    # (a geometric bisection's square root at 0 had made them NaN).
+    k0 = jnp.asarray(k[0])
+    for u0, value, to_velocity in [((-1.0, 0.0, 0.0), 0.0, True), ((0.3, 0.0, 0.0), 0.0, True),
+                                   ((0.0, 0.0, 0.0), 0.0, False), ((-1.0, 0.5, 0.2), 0.0, True)]:
+        def loss(k, u, mu, value, to_velocity=to_velocity):
+            return jnp.sum(coulomb_impulse(k, u, mu, value, to_velocity) * jnp.array([1.0, 2.0, 3.0]))
+
+        grads = jax.grad(loss, argnums=(0, 1, 2, 3))(k0, jnp.asarray(u0), jnp.asarray(0.5), jnp.asarray(value))
+        assert all(np.all(np.isfinite(g)) for g in grads), (u0, value, to_velocity)
+
 
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
 def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):

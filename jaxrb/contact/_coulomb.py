@@ -105,7 +105,7 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
         step = lam - value / _where_positive(slope)
         inside = (slope > 0) & (step >= lo) & (step <= hi)  # (at the root itself: stay)
         # Else bisect, geometrically: the bracket can span decades.
-        middle = jnp.where(hi > 10 * lo, jnp.sqrt(jnp.maximum(lo, 1e-3 * hi) * hi), (lo + hi) / 2)
+        middle = jnp.where(hi > 10 * lo, _safe_sqrt(jnp.maximum(lo, 1e-3 * hi) * hi), (lo + hi) / 2)
         return (jnp.where(inside, step, middle), lo, hi), None
 
     (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
@@ -141,10 +141,21 @@ def energy_change(k, u, impulse):
 
 def fraction_within(linear, quadratic, budget):
     """The largest ``theta`` in ``[0, 1]`` with ``theta linear + theta^2 quadratic <= budget``
-    (J; ``quadratic >= 0``, ``budget >= 0``): the quadratic is convex and 0 at ``theta = 0``."""
+    (J; ``quadratic >= 0``, ``budget >= 0``): the quadratic is convex and 0 at ``theta = 0``.
+
+    The root is written without a cancellation: ``2 budget / (root + linear)`` where
+    ``linear > 0``, else ``(root - linear) / (2 quadratic)`` with ``quadratic > budget -
+    linear >= 0``. Both are evaluated only where the budget binds, so a derivative through
+    the unbinding case (a ``quadratic`` of rounding size) stays finite."""
     fits = linear + quadratic <= budget
-    root = (_safe_sqrt(linear * linear + 4 * quadratic * budget) - linear) / (2 * _where_positive(quadratic))
-    return jnp.where(fits, 1.0, jnp.clip(root, 0.0, 1.0))
+    rising = linear > 0
+    linear = jnp.where(fits, 1.0, linear)
+    budget = jnp.where(fits, 0.0, budget)
+    quadratic = jnp.where(fits, 1.0, quadratic)
+    root = _safe_sqrt(linear * linear + 4 * quadratic * budget)
+    theta = jnp.where(rising, 2 * budget / jnp.where(rising, root + linear, 1.0),
+                      (root - linear) / (2 * _where_positive(jnp.where(rising, 1.0, quadratic))))
+    return jnp.where(fits, 1.0, jnp.clip(theta, 0.0, 1.0))
 
 
 def largest_fraction(k, u, impulse, budget):
