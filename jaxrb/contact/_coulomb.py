@@ -14,9 +14,9 @@ so friction never adds energy whatever ``p`` is. These functions are written for
 contact and vmapped; their loops have fixed lengths, so reverse mode crosses them.
 
 The impact law (:mod:`._solver`) uses them in two phases (Poisson's hypothesis):
-compression to ``u_n = 0`` with friction (:func:`impulse_to_normal_velocity`), then
+compression to ``u_n = 0`` with friction (:func:`coulomb_impulse` to a velocity), then
 restitution, ``e`` times the compression's normal impulse with its own friction
-(:func:`friction_for_normal_impulse`). Each phase is one implicit step, which is exact
+(:func:`coulomb_impulse` with ``p`` given). Each phase is one implicit step, which is exact
 where the contact sticks at the end of the phase or slides one way throughout it: the
 closed forms of a rod landing on its end (``u_n' = -e u_n``).
 """
@@ -26,8 +26,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["coulomb_impulse", "energy_change", "fraction_within", "friction_for_normal_impulse",
-           "impulse_to_normal_velocity", "largest_fraction"]
+from .._branch import branch
+
+__all__ = ["coulomb_impulse", "energy_change", "fraction_within", "frictionless_impulse", "largest_fraction"]
 
 #: Iterations on the friction multiplier of a sliding contact: safeguarded Newton steps
 #: (a bisection of the bracket where a step would leave it), in one loop. On 20,000 random
@@ -108,7 +109,14 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
         middle = jnp.where(hi > 10 * lo, _safe_sqrt(jnp.maximum(lo, 1e-3 * hi) * hi), (lo + hi) / 2)
         return (jnp.where(inside, step, middle), lo, hi), None
 
-    (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
+    def root(start, hi):
+        (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
+        return lam
+
+    # The search only where its root is used: a sliding contact that pushes. (Under the
+    # impact law's vmap over pairs, ``branch`` still skips it when no pair needs it.)
+    slides_at_all = (mu > 0) & ~sticks & (jnp.where(to_velocity, need, value) > 0)
+    lam = branch(slides_at_all, root, lambda start, _: start, start, hi)
     p, x = impulse(lam)
     # On the disk (an iterate short of the root leaves |x| a little over mu p).
     x = x * jnp.minimum(1.0, mu * p / _where_positive(_norm(x)))
@@ -121,17 +129,13 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     return jnp.where(jnp.where(to_velocity, need, value) > 0, result, 0.0)
 
 
-def friction_for_normal_impulse(k, u, p, mu):
-    """The impulse ``(p, x)`` ``(3,)`` with the normal part ``p`` given (N s) and Coulomb's ``x``:
-
-        x = argmin_{|x| <= mu p}  x . (u_t + k_tn p) + x . k_tt x / 2."""
-    return coulomb_impulse(k, u, mu, p, False)
-
-
-def impulse_to_normal_velocity(k, u, target, mu):
-    """The impulse ``(3,)`` that brings ``u_n`` to ``target`` (m/s) under Coulomb's law
-    (0 where ``u_n >= target`` already: the contact pushes, it does not pull)."""
-    return coulomb_impulse(k, u, mu, target, True)
+def frictionless_impulse(k, u, target):
+    """The impulse ``(p, 0, 0)`` ``(3,)`` that brings ``u_n`` to ``target`` (m/s) without
+    friction, ``p = (target - u_n) / k_nn`` (0 where ``u_n >= target``): what
+    :func:`coulomb_impulse` gives at ``mu = 0``, the same arithmetic, without its search."""
+    need = target - u[0]
+    p = jnp.where(need > 0, need / _where_positive(k[0, 0]), 0.0)
+    return jnp.concatenate([jnp.reshape(p, (1,)), jnp.zeros_like(u[1:])])
 
 
 def energy_change(k, u, impulse):
