@@ -198,8 +198,10 @@ PAIRS = [
     ("sphere", "capsule"),
     ("capsule", "rod"),
     ("box", "crate"),
+    ("capsule", "box"),
     ("box", "sphere"),
     ("capsule", "sphere"),
+    ("box", "capsule"),
 ]
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 BATCH = 32  # every batch is padded to this size, so each pair compiles once
@@ -719,7 +721,7 @@ def _central_differences(a, b, pa, qa, pb, qb, weights, mask, h=1e-6):
     return (scalar[:12] - scalar[12:]) / (2 * h)
 
 
-@pytest.mark.parametrize("pair", PAIRS[:8], ids="-".join)
+@pytest.mark.parametrize("pair", PAIRS[:9], ids="-".join)
 def test_gradients_match_finite_differences(pair):
     """Reverse-mode gradient of gaps, points and normals vs central differences, h = 1e-6.
 
@@ -811,6 +813,7 @@ def test_max_contacts_and_unsupported_pairs():
         (Sphere, Box): 1,
         (Sphere, Capsule): 1,
         (Capsule, Capsule): 2,
+        (Capsule, Box): 2,
         (Box, Box): 4,
     }
     for (ta, tb), k in expected.items():
@@ -818,8 +821,8 @@ def test_max_contacts_and_unsupported_pairs():
     assert collision.max_contacts(Box((1, 1, 1)), Sphere(1.0)) == 1
     with pytest.raises(ValueError, match="Supported pairs.*Sphere-Plane"):
         collision.collide(Box((1, 1, 1)), np.zeros(3), IDENTITY, Cylinder(1.0, 1.0), np.zeros(3), IDENTITY)
-    with pytest.raises(ValueError, match="Box, Capsule"):
-        collision.max_contacts(Box, Capsule)
+    with pytest.raises(ValueError, match="Cylinder, Capsule"):
+        collision.max_contacts(Cylinder, Capsule)
 
 
 def test_bad_inputs_fail_early():

@@ -16,11 +16,14 @@ sphere-sphere      1    along the line of centres (coincident: world +z)
 sphere-box         1    closest box point, or nearest face from inside
 sphere-capsule     1    closest segment point (on the segment: capsule's body x)
 capsule-capsule    2    closest pair + the other end of the overlap
+capsule-box        2    closest segment point (SAT where the segment meets the box)
+                        + the other end of the segment's overlap with that face
 box-box            4    SAT; clipped face manifold reduced to 4, or one edge-edge
 =================  ===  ==========================================================
 """
 
 from ._box import box_box as box_box
+from ._capsule import capsule_box as capsule_box
 from ._capsule import capsule_capsule as capsule_capsule
 from ._contact import Contact as Contact
 from ._contact import concatenate_contacts as concatenate_contacts

@@ -1,4 +1,4 @@
-"""Capsule (A) against capsule (B): ``K = 2``.
+"""Capsule (A) against capsule (B) and against a box (B): ``K = 2`` each.
 
 A capsule is a segment ``c + s a``, ``|s| <= half_length`` (``a`` = its body z axis),
 rounded by its radius, so capsule-capsule is segment-segment distance (Ericson,
@@ -19,20 +19,42 @@ and it is switched off when it coincides with slot 0 (perpendicular or end-to-en
 capsules), so one point is never reported twice. Slot 1 is the contact of A's ball at
 that end of the overlap: when A is tilted towards B there, its point on A can lie inside
 A's cylinder rather than on A's surface (as for capsule-plane's upper end).
+
+Capsule-box is a ball-box contact (:func:`._sphere.ball_box_contact`) at two points of
+the segment, chosen the same way:
+
+* slot 0: the segment point closest to the box. The box's signed distance is convex along
+  the segment, so a golden-section search finds its minimiser (``GOLDEN_ITERATIONS``
+  steps, no derivative through it: at a smooth minimum the distance's derivative in the
+  point is 0). The ends of the overlap below are preferred where they are as close, so a
+  capsule lying on a face gets the ends of its contact line, not an arbitrary point of it.
+* slot 1: the end, farther from slot 0, of the overlap: the part of the segment whose
+  projection along slot 0's box face normal falls on that face (the segment clipped to the
+  face's two slabs). It is active only within the margin and when distinct from slot 0.
+
+A segment that crosses the box's interior (a penetration deeper than the radius) has a
+kink at the minimum; the gap's derivative there is that of the face the point lies
+nearest to, with the point held.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 from .. import spatial
-from ..shapes import Capsule
+from .._indexing import literal_array
+from ..shapes import Box, Capsule
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
-from ._sphere import rounded_points_contact
+from ._sphere import ball_box_contact, rounded_points_contact
 
-__all__ = ["capsule_capsule"]
+__all__ = ["capsule_box", "capsule_capsule"]
+
+#: Golden-section steps for the segment point closest to a box: the bracket shrinks by
+#: 0.618 a step, to 1e-10 of the segment's length after 48.
+GOLDEN_ITERATIONS = 48
 
 #: Slot 1 is reported only if it is at least this fraction of the smaller radius away
 #: from slot 0 along A: closer than that, the two points lie in one contact patch and add
@@ -117,3 +139,149 @@ def capsule_capsule(
     distinct = jnp.abs(s1 - s0) > _DISTINCT_FRACTION * min(capsule_a.radius, capsule_b.radius)
     valid = jnp.stack([jnp.ones((), bool), distinct])
     return contact_from_surface_point(surface_a, normal, gap, margin, valid=valid)
+
+
+def capsule_box(
+    capsule: Capsule,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    box: Box,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Capsule (A) against box (B): ``K = 2`` (see the module docstring for the two slots).
+
+    Each slot is the ball of the capsule's radius at one segment point against the box, so
+    its gap is that point's signed distance to the box less the radius, and slot 0's is the
+    capsule's. Degenerate cases are those of :func:`._sphere.sphere_box` (a segment point
+    inside the box takes its nearest face), all finite in value and gradient.
+    """
+    position_a, orientation_a = geo.pose("capsule_box (capsule)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("capsule_box (box)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, orientation_a, position_b, orientation_b = geo.as_float(
+        dtype, position_a, orientation_a, position_b, orientation_b
+    )
+    axis = geo.body_axes(orientation_a)[2]
+    axes_b = geo.body_axes(orientation_b)
+    half_box = literal_array(box.half_extents, dtype)
+    half = capsule.half_length
+
+    def ball(s):
+        return ball_box_contact(position_a + s * axis, capsule.radius, position_b, axes_b, half_box)
+
+    # The search compares values only: no derivative crosses it (see _newton_step).
+    def distance(s):
+        return jax.lax.stop_gradient(ball(s)[2])
+
+    golden = (5.0**0.5 - 1.0) / 2.0
+
+    def shrink(bracket, _):
+        low, high = bracket
+        left, right = high - golden * (high - low), low + golden * (high - low)
+        keep_left = distance(left) <= distance(right)  # the minimiser lies in [low, right]
+        return (jnp.where(keep_left, low, left), jnp.where(keep_left, right, high)), None
+
+    start = (jnp.asarray(-half, dtype), jnp.asarray(half, dtype))
+    (low, high), _ = jax.lax.scan(shrink, start, None, length=GOLDEN_ITERATIONS)
+    # The bracket closes on an end without reaching it: the ends are candidates of their own.
+    s_candidates = jnp.stack([(low + high) / 2, -start[1], start[1]])
+    s_search = _newton_step(lambda s: ball(s)[2], jax.lax.stop_gradient(
+        s_candidates[jnp.argmin(jax.vmap(distance)(s_candidates))]), half)
+    normal_box = ball(s_search)[3]
+
+    # The overlap: the segment clipped to the slabs of the face slot 0's normal points out of.
+    centre = spatial.dot(axes_b, (position_a - position_b)[None, :])  # box frame
+    direction = spatial.dot(axes_b, axis[None, :])
+    tangential = jnp.arange(3) != jnp.argmax(jnp.abs(normal_box))
+    moving = jnp.abs(direction) > jnp.finfo(dtype).eps
+    step = jnp.where(moving, direction, 1.0)
+    ends = jnp.stack([(-half_box - centre) / step, (half_box - centre) / step])
+    inside = jnp.abs(centre) <= half_box  # a slab the segment runs parallel to: all or nothing
+    enter = jnp.where(moving, jnp.min(ends, 0), jnp.where(inside, -half, half))
+    leave = jnp.where(moving, jnp.max(ends, 0), jnp.where(inside, half, -half))
+    lo = jnp.maximum(-half, jnp.max(jnp.where(tangential, enter, -half)))
+    hi = jnp.minimum(half, jnp.min(jnp.where(tangential, leave, half)))
+    overlaps = lo <= hi
+    lo, hi = jnp.where(overlaps, lo, s_search), jnp.where(overlaps, hi, s_search)
+
+    # Slot 0: an end of the overlap unless the search's point is closer by more than
+    # round-off; slot 1: the overlap's other end.
+    s_ends = jnp.stack([lo, hi])
+    end_gap = jax.vmap(lambda s: ball(s)[2])(s_ends)
+    best_end = jnp.argmin(end_gap)
+    tolerance = 64 * jnp.finfo(dtype).eps * (spatial.safe_norm(centre) + half + jnp.sum(half_box))
+    use_search = distance(s_search) < jax.lax.stop_gradient(end_gap[best_end]) - tolerance
+    s0 = jnp.where(use_search, s_search, s_ends[best_end])
+    s1 = jnp.where(jnp.abs(hi - s0) >= jnp.abs(lo - s0), hi, lo)
+    surface_a, normal, gap, _ = jax.vmap(ball)(jnp.stack([s0, s1]))
+
+    # Where the segment itself meets the box, slot 0 is the separating-axis contact.
+    crossing = distance(s_search) <= -capsule.radius  # (``distance`` is the capsule's gap)
+    sat_surface, sat_normal, sat_gap = _segment_box_penetration(
+        position_a, axis, half, s0, position_b, axes_b, half_box, tolerance)
+    first = jnp.arange(2) == 0
+    surface_a = jnp.where(first[:, None] & crossing, sat_surface - capsule.radius * sat_normal, surface_a)
+    normal = jnp.where(first[:, None] & crossing, sat_normal, normal)
+    gap = jnp.where(first & crossing, sat_gap - capsule.radius, gap)
+    distinct = overlaps & (jnp.abs(s1 - s0) > _DISTINCT_FRACTION * capsule.radius)
+    return contact_from_surface_point(surface_a, normal, gap, margin, valid=jnp.stack([jnp.ones((), bool), distinct]))
+
+
+def _newton_step(gap, s, half):
+    """``s`` moved by one Newton step on ``gap'(s) = 0`` where it is an interior minimum.
+
+    The search only compares values, so it places a smooth minimum to about ``sqrt(eps)``
+    of the length and gives ``s`` no derivative; the step brings it to round-off, and its
+    derivative is the implicit function theorem's, ``ds/dx = -(d gap'/dx) / gap''``, so the
+    contact point moves with the poses. It is taken only where it is small (``1e-6`` of
+    the half length): at an end, or where ``gap'' = 0`` (a point above a face, whose
+    distance is linear), ``s`` is kept."""
+    slope = jax.grad(gap)
+    value, curvature = jax.jvp(slope, (s,), (jnp.ones_like(s),))
+    step = value / jnp.where(curvature > 0, curvature, 1.0)
+    small = (curvature > 0) & (jnp.abs(step) <= 1e-6 * half) & (jnp.abs(s) < half)
+    return s - jnp.where(small, step, 0.0)
+
+
+def _segment_box_penetration(position_a, axis, half, s_flat, position_b, axes_b, half_box, tolerance):
+    """A segment ``position_a + s axis``, ``|s| <= half``, that meets a box: its deepest point
+    (world, m), the normal (box to segment) and the signed distance (m, ``<= 0``).
+
+    The segment and the box are separated along some axis unless they intersect, and the
+    candidates are the facet normals of their Minkowski difference: the box's three face
+    normals and the cross products of the segment with the box's three edge directions
+    (Ericson, sec. 4.4, as in :func:`._box.box_box`). The largest separation over them is
+    the signed distance, minus the penetration depth. A segment parallel to a face
+    (``s_flat``: the overlap's end chosen for slot 0) keeps that point; an edge axis must
+    beat the best face by more than ``tolerance``, so ties go to faces."""
+    offset = position_a - position_b
+    edges = spatial.cross(axis[None, :], axes_b)
+    edge_length = spatial.safe_norm(edges)
+    usable = edge_length > jnp.sqrt(jnp.finfo(offset.dtype).eps)  # not parallel to that edge
+    candidates = jnp.concatenate([axes_b, edges / jnp.where(usable, edge_length, 1.0)[:, None]])
+    candidates = candidates * geo.sign_nonzero(spatial.dot(candidates, offset[None, :]))[:, None]  # box to segment
+    reach_box = spatial.dot(half_box[None, :], jnp.abs(spatial.dot(candidates[:, None, :], axes_b[None, :, :])))
+    reach_segment = half * jnp.abs(spatial.dot(candidates, axis[None, :]))
+    separation = spatial.dot(candidates, offset[None, :]) - reach_box - reach_segment
+    separation = jnp.where(jnp.concatenate([jnp.ones(3, bool), usable]), separation, -jnp.inf)
+    face, edge = jnp.argmax(separation[:3]), 3 + jnp.argmax(separation[3:])
+    use_edge = separation[edge] > separation[face] + tolerance
+    normal = jnp.where(use_edge, candidates[edge], candidates[face])
+    depth = jnp.where(use_edge, separation[edge], separation[face])
+
+    # The deepest point: for a face, the segment's end farthest along -normal (``s_flat``
+    # where the segment is parallel to it); for an edge, the segment's point closest to
+    # the box's edge that supports the box along the normal.
+    along = spatial.dot(candidates[face], axis)
+    s_face = jnp.where(jnp.abs(along) > jnp.finfo(offset.dtype).eps, -half * geo.sign_nonzero(along), s_flat)
+    m = edge - 3
+    towards = geo.sign_nonzero(spatial.dot(axes_b, candidates[edge][None, :]))
+    others = jnp.arange(3) != m
+    corner = jnp.where(others, towards * half_box, 0.0)  # box frame
+    edge_centre = position_b + spatial.dot(spatial.transpose(axes_b), corner[None, :])
+    s_edge, _ = geo.closest_between_segments(position_a, axis, half, edge_centre, axes_b[m], half_box[m])
+    s_deep = jnp.where(use_edge, s_edge, s_face)
+    return position_a + s_deep * axis, normal, depth

@@ -17,7 +17,7 @@ from ..shapes import Box, Capsule, Sphere
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
 
-__all__ = ["sphere_sphere", "sphere_box", "sphere_capsule", "rounded_points_contact"]
+__all__ = ["ball_box_contact", "sphere_sphere", "sphere_box", "sphere_capsule", "rounded_points_contact"]
 
 
 def rounded_points_contact(
@@ -81,7 +81,7 @@ def sphere_box(
 
     * centre outside: the closest box point is ``clip(c, -e, e)`` (Ericson sec. 5.1.4);
       the normal points from it to ``c`` and ``gap = |c - clip(c)| - r``.
-    * centre inside (or on the surface): the nearest face ``k = argmin_i (e_i - |c_i|)``
+    * centre inside (or on the surface, to round-off): the nearest face ``k = argmin_i (e_i - |c_i|)``
       gives the shortest way out, normal ``sign(c_k) a_k`` and
       ``gap = -(e_k - |c_k|) - r`` -- the exact signed distance, so the two branches
       agree on the surface and the gap is continuous.
@@ -96,27 +96,42 @@ def sphere_box(
     geo.check_margin(margin)
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
-    half = literal_array(box.half_extents, dtype)
     axes = geo.body_axes(orientation_b)  # rows: box axes, world frame
-    centre = spatial.dot(axes, (position_a - position_b)[None, :])  # box frame
+    surface_a, normal, gap, _ = ball_box_contact(position_a, sphere.radius, position_b, axes,
+                                                 literal_array(box.half_extents, dtype))
+    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+
+
+def ball_box_contact(
+    centre: Float[Array, "3"], radius: float, position_b: Float[Array, "3"], axes: Float[Array, "3 3"],
+    half: Float[Array, "3"],
+) -> tuple[Array, Array, Array, Array]:
+    """A ball ``(centre, radius)`` (world frame, m) against a box at ``position_b`` whose
+    world axes are the rows of ``axes``, half extents ``half``: A's surface point ``(3,)``,
+    the normal ``(3,)`` (world, box to ball), the gap ``()`` and the normal in the box
+    frame ``(3,)``. See :func:`sphere_box`."""
+    centre = spatial.dot(axes, (centre - position_b)[None, :])  # box frame
     # Outside: the clamped point.
     closest = jnp.clip(centre, -half, half)
     offset = centre - closest
     outside_distance = spatial.safe_norm(offset)
-    outside = outside_distance > 0
+    # A centre within round-off of the surface counts as inside, where its face gives a unit
+    # normal: a compiled program can round ``offset`` differently in the two places it is
+    # used, and a capsule-box slot is placed exactly on a face's plane by construction
+    # (a normal of 0 was seen there under jit and vmap).
+    outside = outside_distance > 64 * jnp.finfo(centre.dtype).eps * (jnp.max(jnp.abs(centre)) + jnp.sum(half))
     # Inside: the nearest face. Its sign never returns 0, so a centred sphere still gets a face.
     depth = half - jnp.abs(centre)  # distance to each pair of faces, >= 0 inside
     k = jnp.argmin(depth)
     face_sign = geo.sign_nonzero(centre[k])
-    face_normal = face_sign * jnp.eye(3, dtype=dtype)[k]
+    face_normal = face_sign * jnp.eye(3, dtype=centre.dtype)[k]
     inside_closest = centre.at[k].set(face_sign * half[k])
     normal_box = jnp.where(outside, spatial.safe_normalize(offset), face_normal)
     box_point = jnp.where(outside, closest, inside_closest)
-    gap = jnp.where(outside, outside_distance, -depth[k]) - sphere.radius
+    gap = jnp.where(outside, outside_distance, -depth[k]) - radius
     normal = spatial.dot(spatial.transpose(axes), normal_box[None, :])  # back to world
     surface_b = position_b + spatial.dot(spatial.transpose(axes), box_point[None, :])
-    surface_a = surface_b + gap * normal
-    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+    return surface_b + gap * normal, normal, gap, normal_box
 
 
 def sphere_capsule(
