@@ -789,6 +789,54 @@ def test_float32_is_finite_and_close_to_float64(pair):
     assert np.isfinite(gap32).sum() >= len(sd) - 1  # at most one case slips past the margin by round-off
 
 
+def test_capsule_over_a_box_edge_moves_its_contact_point_in_float32_as_in_float64():
+    """Capsule-box's slot 0 at an interior point of the segment (a capsule skew over a box's
+    edge): the point's derivative in the poses carries the implicit-function term of the
+    refining Newton step in float32 too. The golden search places the point to about
+    ``sqrt(eps)`` of the length; the step is taken up to ``64 sqrt(eps)`` of it. With a
+    threshold of 1e-6 of the length, float32 skipped the step and its point's derivative
+    was off by ~0.1 (the derivative of a point that does not slide along the segment)."""
+    capsule, box = Capsule(0.05, 0.3), Box((0.2, 0.2, 0.2))
+    rng = np.random.default_rng(7)
+    n = 8
+    # Beside the edge x = z = 0.2 (along y), the axis (a, 1, -a) skew to it: over the
+    # segment the point stays in the edge's region (x, z > 0.2), and its distance to the
+    # edge, sqrt(c^2 + 2 a^2 t^2), is smallest at the segment's middle (t = 0).
+    clearance = rng.uniform(0.08, 0.12, n)
+    position = np.stack([0.2 + clearance / np.sqrt(2), rng.uniform(-0.05, 0.05, n), 0.2 + clearance / np.sqrt(2)], 1)
+    a = rng.uniform(0.1, 0.2, n) * rng.choice([-1, 1], n)
+    axis = np.stack([a, np.ones(n), -a], 1)
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    # The quaternion turning z onto the axis.
+    half_way = axis + np.array([0.0, 0.0, 1.0])
+    half_way /= np.linalg.norm(half_way, axis=1, keepdims=True)
+    orientation = np.concatenate([half_way[:, 2:], np.cross([0.0, 0.0, 1.0], half_way)], 1)
+    box_orientation = np.tile(IDENTITY, (n, 1))
+    direction = rng.normal(size=(n, 7))  # the capsule's position and orientation move
+
+    def point_and_gap(pa, qa, pb, qb, dtype):
+        c = collision.capsule_box(capsule, pa.astype(dtype), qa.astype(dtype), box, pb.astype(dtype),
+                                  qb.astype(dtype), margin=0.1)
+        return c.point[0], c.gap[0]
+
+    @functools.partial(jax.jit, static_argnums=0)
+    @functools.partial(jax.vmap, in_axes=(None, 0, 0, 0, 0, 0))
+    def derivative(dtype, pa, qa, pb, qb, d):
+        return jax.jvp(lambda pa, qa: point_and_gap(pa, qa, pb, qb, dtype),
+                       (pa.astype(dtype), qa.astype(dtype)), (d[:3].astype(dtype), d[3:].astype(dtype)))
+
+    args = (position, orientation, np.zeros((n, 3)), box_orientation, direction)
+    (point64, gap64), (dpoint64, dgap64) = derivative(jnp.float64, *args)
+    (point32, gap32), (dpoint32, dgap32) = derivative(jnp.float32, *args)
+    along = np.einsum("ij,ij->i", np.asarray(point64) - position, axis)
+    assert np.all(np.abs(along) < 0.1 * capsule.half_length)  # the segment's middle
+    np.testing.assert_allclose(gap64, clearance - capsule.radius, rtol=0, atol=1e-12)
+    assert np.max(np.linalg.norm(np.asarray(dpoint64), axis=1)) > 0.5  # the point does move
+    np.testing.assert_allclose(point32, point64, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(dgap32, dgap64, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(dpoint32, dpoint64, rtol=0, atol=1e-3)
+
+
 # ============================================================================ API
 
 

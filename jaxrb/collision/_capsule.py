@@ -236,13 +236,16 @@ def _newton_step(gap, s, half):
     The search only compares values, so it places a smooth minimum to about ``sqrt(eps)``
     of the length and gives ``s`` no derivative; the step brings it to round-off, and its
     derivative is the implicit function theorem's, ``ds/dx = -(d gap'/dx) / gap''``, so the
-    contact point moves with the poses. It is taken only where it is small (``1e-6`` of
-    the half length): at an end, or where ``gap'' = 0`` (a point above a face, whose
-    distance is linear), ``s`` is kept."""
+    contact point moves with the poses. It is taken only where it is small (``64 sqrt(eps)``
+    of the half length: 1e-6 in float64, 2e-2 in float32, whose search places the point
+    only to ~1e-4 m; with 1e-6 there, float32 skipped the step and its point's derivative
+    lacked the implicit term, off by up to 13 in ``tests/test_collision.py``'s skew
+    capsule): at an end, or where ``gap'' = 0`` (a point above a face, whose distance is
+    linear), ``s`` is kept."""
     slope = jax.grad(gap)
     value, curvature = jax.jvp(slope, (s,), (jnp.ones_like(s),))
     step = value / jnp.where(curvature > 0, curvature, 1.0)
-    small = (curvature > 0) & (jnp.abs(step) <= 1e-6 * half) & (jnp.abs(s) < half)
+    small = (curvature > 0) & (jnp.abs(step) <= 64 * jnp.sqrt(jnp.finfo(s.dtype).eps) * half) & (jnp.abs(s) < half)
     return s - jnp.where(small, step, 0.0)
 
 
