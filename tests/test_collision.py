@@ -76,6 +76,10 @@ def kinks(body):
 
 
 def projection_radius(body, n):
+    if body[0] == "cylinder":  # h |n.a| + r |n - (n.a) a|: not of the kinks' form (planes only)
+        r, half = body[1]
+        axis = body[3][:, 2]  # |n x a|, not sqrt(1 - (n.a)^2): that is 1e-8 at round-off from upright
+        return half * np.abs(n @ axis) + r * np.linalg.norm(np.cross(n, axis), axis=-1)
     terms, constant = kinks(body)
     return sum((w * np.abs(n @ b) for w, b in terms), np.full(n.shape[:-1], float(constant)))
 
@@ -170,6 +174,10 @@ def surface_distance(body, x):
         r, half = size
         closest = np.stack([np.zeros(len(local)), np.zeros(len(local)), np.clip(local[:, 2], -half, half)], 1)
         return np.linalg.norm(local - closest, axis=-1) - r
+    if kind == "cylinder":
+        r, half = size
+        q = np.stack([np.linalg.norm(local[:, :2], axis=-1) - r, np.abs(local[:, 2]) - half], -1)
+        return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(axis=-1), 0)
     raise ValueError(kind)
 
 
@@ -186,6 +194,7 @@ SHAPES = {
     "cube": (Box((0.4, 0.4, 0.4)), ("box", (0.4, 0.4, 0.4))),
     "capsule": (Capsule(0.15, 0.4), ("capsule", (0.15, 0.4))),
     "rod": (Capsule(0.25, 0.3), ("capsule", (0.25, 0.3))),
+    "cylinder": (Cylinder(0.2, 0.35), ("cylinder", (0.2, 0.35))),
     "plane": (PLANE, None),
 }
 # (A, B): every implemented pair, plus reversed orders served by the dispatch.
@@ -193,6 +202,7 @@ PAIRS = [
     ("sphere", "plane"),
     ("box", "plane"),
     ("capsule", "plane"),
+    ("cylinder", "plane"),
     ("sphere", "ball"),
     ("sphere", "box"),
     ("sphere", "capsule"),
@@ -474,6 +484,60 @@ def test_capsule_lying_on_plane_has_both_ends_active():
     np.testing.assert_allclose(c.gap, -0.003, atol=1e-14)
 
 
+def test_cylinder_on_plane_stands_on_its_rim_and_lies_on_a_line():
+    """On the tilted ground, 3 mm deep, margin 1 cm. Standing on a cap: four slots at that
+    depth, the cap's centre and three rim points 120 degrees apart, whose triangle holds
+    the centre. Lying: both rims' lowest points (the contact line's ends), the other slots
+    far above. Tilted by 0.3 rad onto its rim: one slot, at the exact depth."""
+    depth, (r, half) = 0.003, SHAPES["cylinder"][1][1]
+    standing = _tilt_to_plane(0.5)
+    lying = quat_mul(_tilt_to_plane(0.5), axis_angle([1, 0, 0], np.pi / 2))
+    tilted = quat_mul(_tilt_to_plane(0.5), axis_angle([1, 0.4, 0], 0.3))
+    poses = [standing, lying, tilted]
+    pa = np.array([_rest_on_plane_pose("cylinder", q, depth) for q in poses])
+    c = run("cylinder", "plane", pa, np.array(poses), np.zeros((3, 3)), np.tile(IDENTITY, (3, 1)), margin=0.01)
+    assert list(c.active.sum(axis=1)) == [4, 2, 1]
+    on_cylinder = c.point + 0.5 * c.gap[..., None] * c.normal
+    # Standing: the bottom cap's centre and three rim points, spread around it.
+    np.testing.assert_allclose(c.gap[0], -depth, atol=1e-14)
+    cap_centre = pa[0] - half * quat_matrix(standing)[:, 2]
+    radial = np.linalg.norm(on_cylinder[0] - cap_centre, axis=1)
+    np.testing.assert_allclose(np.sort(radial), [0.0, r, r, r], atol=1e-13)
+    np.testing.assert_allclose(np.mean(on_cylinder[0][radial > r / 2], axis=0), cap_centre, atol=1e-13)
+    # Lying: the two ends of the contact line, 2 h apart along the axis.
+    active = on_cylinder[1][c.active[1]]
+    np.testing.assert_allclose(c.gap[1][c.active[1]], -depth, atol=1e-14)
+    np.testing.assert_allclose(np.abs((active[0] - active[1]) @ quat_matrix(lying)[:, 2]), 2 * half, atol=1e-13)
+    assert np.all(c.gap[1][~c.active[1]] > 0.3 * r)
+    # Tilted: the rim's lowest point, at the exact depth.
+    np.testing.assert_allclose(c.gap[2][c.active[2]], -depth, atol=1e-14)
+
+
+def test_a_nearly_upright_cylinder_has_bounded_contact_point_derivatives():
+    """Tilted from upright by 1e-12 to 1e-6 rad, a cylinder's contact points move with the
+    tilt at most ``r / TILT_RAMP`` (m/rad): the deepest rim point is ``e - r w / max(|w|,
+    TILT_RAMP)``. With ``w / |w|`` it moves as ``r / tilt``, up to 2e11 here. The gap keeps
+    the derivative of the plane's distance (at most ``r + h``)."""
+    from jaxrb.collision._plane import TILT_RAMP
+
+    shape, (r, half) = SHAPES["cylinder"][0], SHAPES["cylinder"][1][1]
+    upright = _tilt_to_plane(0.5)
+    position = _rest_on_plane_pose("cylinder", upright, 0.0)
+
+    def slots(rotation, tilt):
+        c = collision.collide(shape, jnp.asarray(position), turned(jnp.asarray(upright), rotation + tilt), PLANE,
+                              margin=MARGIN)
+        return jnp.concatenate([c.point.reshape(-1), c.gap])
+
+    jacobian = jax.jit(jax.jacfwd(slots))
+    for size in (1e-12, 1e-9, 1e-6):
+        tilt = size * np.array([0.6, 0.8, 0.0])
+        d = np.asarray(jacobian(jnp.zeros(3), jnp.asarray(tilt)))
+        assert np.all(np.isfinite(d))
+        assert np.max(np.abs(d[:12])) <= 1.01 * r / TILT_RAMP
+        assert np.max(np.abs(d[12:])) <= 1.01 * (r + half)
+
+
 # Box-box manifolds: the small "box" (0.3, 0.2, 0.2) on the big "crate" (0.6, 0.5, 0.4),
 # whose top face is z = 0.4; equal cubes (0.4) for the octagon, the crossed edges and the corners.
 BOX_HALF = np.array([0.3, 0.2, 0.2])
@@ -656,6 +720,12 @@ def _degenerate_cases():
             ),
             0.0,
         ),
+        # Exactly upright (tilt at round-off, inside the deepest rim point's ramp) and lying.
+        ("cylinder standing on plane", "cylinder", "plane",
+         (_rest_on_plane_pose("cylinder", _tilt_to_plane(0.3), 0.0), _tilt_to_plane(0.3), z, IDENTITY), 0.0),
+        ("cylinder lying on plane", "cylinder", "plane",
+         (_rest_on_plane_pose("cylinder", quat_mul(_tilt_to_plane(0.1), lying), 0.0),
+          quat_mul(_tilt_to_plane(0.1), lying), z, IDENTITY), 0.0),
         ("coincident spheres", "sphere", "ball", (z, q, z, IDENTITY), -0.85),
         ("spheres touching", "sphere", "ball", (np.array([0.0, 0.85, 0.0]), q, z, q), 0.0),
         # The box (0.3, 0.2, 0.2): its centre is equally far from the y and z faces (a tie).
@@ -721,7 +791,7 @@ def _central_differences(a, b, pa, qa, pb, qb, weights, mask, h=1e-6):
     return (scalar[:12] - scalar[12:]) / (2 * h)
 
 
-@pytest.mark.parametrize("pair", PAIRS[:9], ids="-".join)
+@pytest.mark.parametrize("pair", PAIRS[:10], ids="-".join)
 def test_gradients_match_finite_differences(pair):
     """Reverse-mode gradient of gaps, points and normals vs central differences, h = 1e-6.
 
@@ -857,6 +927,7 @@ def test_max_contacts_and_unsupported_pairs():
         (Sphere, Plane): 1,
         (Box, Plane): 4,
         (Capsule, Plane): 2,
+        (Cylinder, Plane): 4,
         (Sphere, Sphere): 1,
         (Sphere, Box): 1,
         (Sphere, Capsule): 1,

@@ -12,6 +12,8 @@ pair               K    slots
 sphere-plane       1    the sphere's lowest point
 box-plane          4    the four deepest corners
 capsule-plane      2    the two end spheres
+cylinder-plane     4    the four deepest of: each rim's deepest point, and three
+                        rim points per cap fixed in the body (to stand on a cap)
 sphere-sphere      1    along the line of centres (coincident: world +z)
 sphere-box         1    closest box point, or nearest face from inside
 sphere-capsule     1    closest segment point (on the segment: capsule's body x)
@@ -32,6 +34,7 @@ from ._dispatch import max_contacts as max_contacts
 from ._dispatch import supported_pairs as supported_pairs
 from ._plane import box_plane as box_plane
 from ._plane import capsule_plane as capsule_plane
+from ._plane import cylinder_plane as cylinder_plane
 from ._plane import sphere_plane as sphere_plane
 from ._sphere import sphere_box as sphere_box
 from ._sphere import sphere_capsule as sphere_capsule

@@ -13,12 +13,12 @@ from collections.abc import Callable
 
 from jaxtyping import ArrayLike, Float
 
-from ..shapes import Box, Capsule, Plane, Shape, Sphere
+from ..shapes import Box, Capsule, Cylinder, Plane, Shape, Sphere
 from ._box import box_box
 from ._capsule import capsule_box, capsule_capsule
 from ._contact import Contact
 from ._geometry import check_unit_quaternion
-from ._plane import box_plane, capsule_plane, sphere_plane
+from ._plane import box_plane, capsule_plane, cylinder_plane, sphere_plane
 from ._sphere import sphere_box, sphere_capsule, sphere_sphere
 
 __all__ = ["collide", "max_contacts", "supported_pairs"]
@@ -39,6 +39,7 @@ _PAIRS: dict[tuple[type, type], tuple[Callable[..., Contact], int]] = {
     (Sphere, Plane): (_with_plane(sphere_plane), 1),
     (Box, Plane): (_with_plane(box_plane), 4),
     (Capsule, Plane): (_with_plane(capsule_plane), 2),
+    (Cylinder, Plane): (_with_plane(cylinder_plane), 4),
     (Sphere, Sphere): (sphere_sphere, 1),
     (Sphere, Box): (sphere_box, 1),
     (Sphere, Capsule): (sphere_capsule, 1),

@@ -7,16 +7,18 @@ here is "deepest point of A vs the plane", and its gap is exact.
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
 from .._indexing import literal_array
-from ..shapes import Box, Capsule, Plane, Sphere
+from ..shapes import Box, Capsule, Cylinder, Plane, Sphere
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
 
-__all__ = ["sphere_plane", "box_plane", "capsule_plane"]
+__all__ = ["sphere_plane", "box_plane", "capsule_plane", "cylinder_plane"]
 
 
 def _plane_normal(plane: Plane, dtype) -> Array:
@@ -62,10 +64,8 @@ def box_plane(
 
     The four corners are those of lowest rank in depth (ties broken by corner index), kept
     in corner order, so a slot keeps its corner while the choice is unchanged; equally
-    deep corners are the same contact set whichever is taken. The ranks come from all 8x8
-    comparisons, element-wise (``lax.top_k`` plus a sort was several times slower on a
-    vmapped CPU batch). Gradients flow through the chosen corners; the choice itself is
-    piecewise constant.
+    deep corners are the same contact set whichever is taken (:func:`_four_deepest`).
+    Gradients flow through the chosen corners; the choice itself is piecewise constant.
     """
     position, orientation = geo.pose("box_plane", position, orientation)
     geo.check_margin(margin)
@@ -74,15 +74,22 @@ def box_plane(
     n = _plane_normal(plane, dtype)
     corners = geo.box_corners(position, geo.body_axes(orientation), literal_array(box.half_extents, dtype))
     height = spatial.dot(corners, n[None, :]) - plane.offset  # (8,)
-    index = jnp.arange(8)
+    deepest = _four_deepest(height)
+    return contact_from_surface_point(corners[deepest], jnp.broadcast_to(n, (4, 3)), height[deepest], margin)
+
+
+def _four_deepest(height: Float[Array, " m"]) -> Array:
+    """Indices ``(4,)`` of the four lowest of ``m`` candidate heights, in candidate order.
+
+    Ties go to the lower index, so a slot keeps its candidate while the choice is
+    unchanged. The ranks come from all ``m x m`` comparisons, element-wise (``lax.top_k``
+    plus a sort was several times slower on a vmapped CPU batch)."""
+    index = jnp.arange(height.shape[0])
     same = height[None, :] == height[:, None]
     deeper = (height[None, :] < height[:, None]) | (same & (index[None, :] < index[:, None]))  # (i, j): j before i
     chosen = jnp.sum(deeper, axis=1) < 4  # rank in depth below 4
     running = jnp.cumsum(chosen)
-    deepest = jnp.argmax(running[None, :] == jnp.arange(1, 5)[:, None], axis=1)  # the chosen corners, in order
-    gap = height[deepest]
-    normal = jnp.broadcast_to(n, (4, 3))
-    return contact_from_surface_point(corners[deepest], normal, gap, margin)
+    return jnp.argmax(running[None, :] == jnp.arange(1, 5)[:, None], axis=1)
 
 
 def capsule_plane(
@@ -113,3 +120,65 @@ def capsule_plane(
     gap = spatial.dot(ends, n[None, :]) - plane.offset - capsule.radius
     lowest = ends - capsule.radius * n[None, :]
     return contact_from_surface_point(lowest, jnp.broadcast_to(n, (2, 3)), gap, margin)
+
+
+#: Below this tilt (``sin`` of the angle between the cylinder's axis and the plane's
+#: normal), :func:`cylinder_plane`'s deepest rim point slides in towards its cap's centre.
+#: At a tilt ``t`` the deepest point of a rim is ``e - r w/|w|`` (``|w| = t``), whose
+#: derivative in the pose grows as ``r / t``: a cylinder standing upright, tilted by
+#: round-off, would carry derivatives of 1e15 through a rollout. Taken as ``e - r w /
+#: max(|w|, TILT_RAMP)`` instead, it is exact above the ramp and its derivative is at most
+#: ``r / TILT_RAMP``; below it, the point lies on the cap inside the rim and its height is
+#: at most ``r TILT_RAMP / 4`` above the rim's lowest.
+TILT_RAMP = 1e-3
+
+#: Body angles (rad) of the three rim points per cap that hold a cylinder standing on it.
+_TRIPOD = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)
+
+
+def cylinder_plane(
+    cylinder: Cylinder,
+    position: Float[ArrayLike, "3"],
+    orientation: Float[ArrayLike, "4"],
+    plane: Plane,
+    margin: float = 0.0,
+) -> Contact:
+    """Cylinder (A) on the ground plane (B): ``K = 4``, the four deepest of eight rim points.
+
+    The candidates, for each cap ``e = c +- h a`` (``a`` the body z axis):
+
+    * the rim's deepest point ``e - r u``, ``u`` the unit direction of ``w = n - (n.a) a``
+      (``n`` projected onto the cap's plane): the cylinder's lowest point is always one of
+      the two, so the smallest gap is the exact signed distance (below a tilt of
+      :data:`TILT_RAMP`, ``u = w / TILT_RAMP``: see there);
+    * three rim points fixed in the body, 120 degrees apart: a cylinder standing on a cap
+      touches along its whole rim and needs three points that enclose its centre to stand.
+      A fixed point is left out where it lies within 0.9 r of the deepest point (closer
+      than about 54 degrees along the rim): near the contact it would add a second
+      contact point that a rolling rim brings down onto the ground, an impact every third
+      of a turn.
+
+    The four lowest candidates are the slots (:func:`_four_deepest`). Standing on a cap:
+    the cap's deepest point (at its centre, within the ramp) and its three fixed points;
+    lying on the side: the two rims' deepest points, the line they span; tilted onto a
+    rim: its deepest point and the fixed points near the ground. All are on the
+    cylinder's surface, so every gap is a point's distance to the plane.
+    """
+    position, orientation = geo.pose("cylinder_plane", position, orientation)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position, orientation)
+    position, orientation = geo.as_float(dtype, position, orientation)
+    n = _plane_normal(plane, dtype)
+    x_axis, y_axis, axis = geo.body_axes(orientation)
+    w = n - spatial.dot(n, axis) * axis
+    u = w / jnp.maximum(spatial.safe_norm(w), TILT_RAMP)
+    angles = literal_array(_TRIPOD, dtype)
+    fixed = jnp.cos(angles)[:, None] * x_axis[None, :] + jnp.sin(angles)[:, None] * y_axis[None, :]  # (3, 3)
+    # Per cap: the deepest point, then the fixed points; valid unless near the deepest.
+    rim = jnp.concatenate([-u[None, :], fixed])  # (4, 3), unit (or shorter, within the ramp)
+    valid = jnp.concatenate([jnp.ones(1, bool), spatial.safe_norm(fixed + u[None, :]) >= 0.9])
+    caps = literal_array([[1.0], [-1.0]], dtype) * (cylinder.half_length * axis[None, :])  # (2, 3)
+    points = (position[None, None, :] + caps[:, None, :] + cylinder.radius * rim[None, :, :]).reshape(8, 3)
+    height = spatial.dot(points, n[None, :]) - plane.offset
+    deepest = _four_deepest(jnp.where(jnp.tile(valid, 2), height, jnp.inf))
+    return contact_from_surface_point(points[deepest], jnp.broadcast_to(n, (4, 3)), height[deepest], margin)

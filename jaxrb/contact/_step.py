@@ -57,7 +57,7 @@ from .._static import static_step_length
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
 from ..scene import GROUND, Scene
-from ..shapes import Box, Capsule, Sphere
+from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
 from ._layout import Layout, build_layout, detect, pair_separations, slot_values
 from ._lcp import solve_exact
@@ -485,6 +485,8 @@ def _bounding_radius(scene: Scene, name: str) -> float:
         reach = math.hypot(*shape.half_extents)
     elif isinstance(shape, Capsule):
         reach = shape.radius + shape.half_length
+    elif isinstance(shape, Cylinder):
+        reach = math.hypot(shape.radius, shape.half_length)
     else:  # not reached: contact pairs hold the shapes above (and the ground) only
         raise ValueError(f"No bounding radius for {type(shape).__name__}.")
     return reach + math.hypot(*body.shape_offset)
