@@ -439,7 +439,7 @@ class Scene:
             gravity=gravity_arr,
             linear_damping=self._per_body("linear_damping", linear_damping, (), np.zeros(()), dtype),
             angular_damping=self._per_body("angular_damping", angular_damping, (), np.zeros(()), dtype),
-            extra=extra,
+            extra=_checked_extra(extra),
             restitution=self._per_pair("restitution", restitution, 0.0, dtype),
             friction=self._per_pair("friction", friction, 0.5, dtype),
         )
@@ -665,3 +665,20 @@ class Scene:
             angular_momentum=l_world,
             time=time,
         )
+
+
+def _checked_extra(extra):
+    """``Params.extra`` as given, once each leaf is a number or a numeric array: a string or
+    an object leaf failed later, inside the first step, with a message about
+    ``custom_jvp_call``'s arguments."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(extra):
+        if _is_traced(leaf) or isinstance(leaf, jax.Array):
+            continue
+        kind = np.asarray(leaf).dtype.kind if not isinstance(leaf, (str, bytes)) else "U"
+        if kind not in "biufc":
+            raise ValueError(
+                f"extra{jax.tree_util.keystr(path)} is {leaf!r}: every leaf of extra must be a number or an "
+                f"array of numbers (extra holds your force functions' differentiable parameters); "
+                f"keep names and settings in the force function's closure."
+            )
+    return extra

@@ -448,6 +448,10 @@ def test_small_input_mistakes_are_explained():
     scene = scene_of(BALL)
     with pytest.raises(ValueError, match=r"gravity must be a 3-vector \(gx, gy, gz\)"):
         scene.params(gravity={"z": -9.81})  # a TypeError from float()
+    # A string in extra failed inside the first step, about custom_jvp_call's arguments.
+    with pytest.raises(ValueError, match=r"extra\['drag'\]\[1\] is 'quadratic': every leaf of extra must be a number"):
+        scene.params(extra={"drag": (0.3, "quadratic")})
+    assert scene.params(extra={"drag": (0.3, np.ones(3), True)}).extra["drag"][0] == 0.3  # numbers and arrays pass
     with pytest.raises(ValueError, match="dt must be a positive number"):
         rb.make_step(scene, rb.integrators.RK4(), "0.01")  # float("0.01") had passed
     for kwargs in ({"density": -1000.0}, {"mass": 0.0}, {"density": float("nan")}):
