@@ -206,12 +206,14 @@ PAIRS = [
     ("sphere", "ball"),
     ("sphere", "box"),
     ("sphere", "capsule"),
+    ("sphere", "cylinder"),
     ("capsule", "rod"),
     ("box", "crate"),
     ("capsule", "box"),
     ("box", "sphere"),
     ("capsule", "sphere"),
     ("box", "capsule"),
+    ("cylinder", "sphere"),
 ]
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 BATCH = 32  # every batch is padded to this size, so each pair compiles once
@@ -275,11 +277,30 @@ def sampled_cases(a, b, count=16, seed=0):
         coarse = separation(FIBONACCI, shape_a, shape_b).max()  # a lower bound, to reject cheaply
         if not ((0 < coarse < MARGIN) if separated else (-0.3 < coarse < 0)):
             continue
-        ref = reference_signed_distance(shape_a, shape_b)
+        if "cylinder" in (a, b):  # the support function's polish has no cylinder term
+            ref = _ball_cylinder_reference(shape_a, shape_b)
+        else:
+            ref = reference_signed_distance(shape_a, shape_b)
         if ref[0] < MARGIN - 1e-3:
             poses.append((pa, qa, pb, qb))
             refs.append(ref)
     return tuple(np.array(x) for x in zip(*poses, strict=True)), refs
+
+
+def _ball_cylinder_reference(a, b):
+    """``(sd, normal, unique)`` of a sphere and a cylinder (either order): the cylinder's
+    signed distance function (:func:`surface_distance`) at the sphere's centre, less its
+    radius, and the normal from that function's central-difference gradient (B to A);
+    unique where the gradient has unit length (not on a kink of the function)."""
+    ball, cylinder, sign = (a, b, 1.0) if a[0] == "sphere" else (b, a, -1.0)
+    centre = ball[2]
+    sd = surface_distance(cylinder, centre[None])[0] - ball[1][0]
+    h = 1e-6
+    steps = centre[None, :] + h * np.concatenate([np.eye(3), -np.eye(3)])
+    values = surface_distance(cylinder, steps)
+    gradient = (values[:3] - values[3:]) / (2 * h)
+    length = np.linalg.norm(gradient)  # 0 where the function is symmetric (the centre)
+    return sd, sign * gradient / max(length, 1e-300), abs(length - 1.0) < 1e-6
 
 
 def _pad(*arrays):
@@ -734,6 +755,13 @@ def _degenerate_cases():
         ("sphere centre on an edge", "sphere", "box", (np.array([0.3, 0.2, 0.1]), IDENTITY, z, IDENTITY), -0.35),
         ("sphere centre on a corner", "sphere", "box", (np.array([0.3, 0.2, 0.2]), IDENTITY, z, IDENTITY), -0.35),
         ("sphere touching a face", "sphere", "box", (np.array([0.0, 0.0, 0.55]), IDENTITY, z, IDENTITY), 0.0),
+        # The cylinder (r 0.2, h 0.35): from its centre the side is nearer than the caps.
+        ("sphere centre at cylinder centre", "sphere", "cylinder", (z, IDENTITY, z, q), -0.55),
+        ("sphere centre on cylinder axis", "sphere", "cylinder", (0.3 * quat_matrix(q)[:, 2], IDENTITY, z, q), -0.4),
+        ("sphere centre on cylinder rim", "sphere", "cylinder", (np.array([0.2, 0.0, 0.35]), IDENTITY, z, IDENTITY),
+         -0.35),
+        ("sphere touching cylinder side", "sphere", "cylinder", (np.array([0.0, 0.55, 0.1]), IDENTITY, z, IDENTITY),
+         0.0),
         ("sphere centre on capsule axis", "sphere", "capsule", (z, IDENTITY, z, q), -0.5),
         ("sphere centre at capsule end", "sphere", "capsule", (np.array([0, 0, 0.4]), IDENTITY, z, IDENTITY), -0.5),
         ("parallel capsules touching", "capsule", "rod", (np.array([0.4, 0.0, 0.1]), IDENTITY, z, IDENTITY), 0.0),
@@ -762,7 +790,8 @@ def test_degenerate_cases_have_finite_values_and_gradients(case):
     if expected is not None:
         np.testing.assert_allclose(min_active(c)[1], expected, atol=1e-14)
     if b != "plane":
-        ref, _, _ = reference_signed_distance(body(a, *[p[0] for p in poses[:2]]), body(b, *[p[0] for p in poses[2:]]))
+        reference = _ball_cylinder_reference if b == "cylinder" else reference_signed_distance
+        ref, _, _ = reference(body(a, *[p[0] for p in poses[:2]]), body(b, *[p[0] for p in poses[2:]]))
         np.testing.assert_allclose(min_active(c)[1], ref, atol=1e-12)
     value, grad, _ = gradient(a, b, *(p[0] for p in poses), c.active[0])
     assert np.isfinite(value) and np.all(np.isfinite(grad))
@@ -791,7 +820,7 @@ def _central_differences(a, b, pa, qa, pb, qb, weights, mask, h=1e-6):
     return (scalar[:12] - scalar[12:]) / (2 * h)
 
 
-@pytest.mark.parametrize("pair", PAIRS[:10], ids="-".join)
+@pytest.mark.parametrize("pair", PAIRS[:11], ids="-".join)
 def test_gradients_match_finite_differences(pair):
     """Reverse-mode gradient of gaps, points and normals vs central differences, h = 1e-6.
 
@@ -931,6 +960,7 @@ def test_max_contacts_and_unsupported_pairs():
         (Sphere, Sphere): 1,
         (Sphere, Box): 1,
         (Sphere, Capsule): 1,
+        (Sphere, Cylinder): 1,
         (Capsule, Capsule): 2,
         (Capsule, Box): 2,
         (Box, Box): 4,

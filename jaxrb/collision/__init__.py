@@ -17,6 +17,7 @@ cylinder-plane     4    the four deepest of: each rim's deepest point, and three
 sphere-sphere      1    along the line of centres (coincident: world +z)
 sphere-box         1    closest box point, or nearest face from inside
 sphere-capsule     1    closest segment point (on the segment: capsule's body x)
+sphere-cylinder    1    closest point of the solid, or nearest face from inside
 capsule-capsule    2    closest pair + the other end of the overlap
 capsule-box        2    closest segment point (SAT where the segment meets the box)
                         + the other end of the segment's overlap with that face
@@ -38,4 +39,5 @@ from ._plane import cylinder_plane as cylinder_plane
 from ._plane import sphere_plane as sphere_plane
 from ._sphere import sphere_box as sphere_box
 from ._sphere import sphere_capsule as sphere_capsule
+from ._sphere import sphere_cylinder as sphere_cylinder
 from ._sphere import sphere_sphere as sphere_sphere

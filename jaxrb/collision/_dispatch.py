@@ -19,7 +19,7 @@ from ._capsule import capsule_box, capsule_capsule
 from ._contact import Contact
 from ._geometry import check_unit_quaternion
 from ._plane import box_plane, capsule_plane, cylinder_plane, sphere_plane
-from ._sphere import sphere_box, sphere_capsule, sphere_sphere
+from ._sphere import sphere_box, sphere_capsule, sphere_cylinder, sphere_sphere
 
 __all__ = ["collide", "max_contacts", "supported_pairs"]
 
@@ -43,6 +43,7 @@ _PAIRS: dict[tuple[type, type], tuple[Callable[..., Contact], int]] = {
     (Sphere, Sphere): (sphere_sphere, 1),
     (Sphere, Box): (sphere_box, 1),
     (Sphere, Capsule): (sphere_capsule, 1),
+    (Sphere, Cylinder): (sphere_cylinder, 1),
     (Capsule, Capsule): (capsule_capsule, 2),
     (Capsule, Box): (capsule_box, 2),
     (Box, Box): (box_box, 4),

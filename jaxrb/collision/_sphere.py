@@ -1,9 +1,9 @@
-"""Sphere (A) against sphere, box and capsule (B): one contact each (``K = 1``).
+"""Sphere (A) against sphere, box, capsule and cylinder (B): one contact each (``K = 1``).
 
 Sphere-sphere and sphere-capsule both reduce to two "core" points, each carrying a radius:
 the contact is along the line between the cores (Ericson, *Real-Time Collision Detection*,
-sec. 4.3 and 5.1.2). Sphere-box uses the closest point of the box to the sphere centre
-(sec. 5.1.4), or the nearest face when the centre is inside the box.
+sec. 4.3 and 5.1.2). Sphere-box and sphere-cylinder use the closest point of the solid to
+the sphere centre (sec. 5.1.4 for the box), or the nearest face when the centre is inside.
 """
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
 from .._indexing import literal_array
-from ..shapes import Box, Capsule, Sphere
+from ..shapes import Box, Capsule, Cylinder, Sphere
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
 
-__all__ = ["ball_box_contact", "sphere_sphere", "sphere_box", "sphere_capsule", "rounded_points_contact"]
+__all__ = ["ball_box_contact", "ball_cylinder_contact", "sphere_sphere", "sphere_box", "sphere_capsule",
+           "sphere_cylinder", "rounded_points_contact"]
 
 
 def rounded_points_contact(
@@ -160,3 +161,76 @@ def sphere_capsule(
     _, core_b = geo.closest_on_segment(position_b, axes[2], capsule.half_length, position_a)
     surface_a, normal, gap = rounded_points_contact(position_a, sphere.radius, core_b, capsule.radius, axes[0])
     return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+
+
+def sphere_cylinder(
+    sphere: Sphere,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    cylinder: Cylinder,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Sphere (A) against cylinder (B): ``K = 1``, also with the sphere centre inside it.
+
+    In the cylinder's frame (axis z), with the centre at radial offset ``rho`` and height
+    ``z``:
+
+    * centre outside: the closest point of the solid cylinder has its radial offset cut to
+      the radius and its height to ``[-h, h]`` (a point of the side, a cap or the rim); the
+      normal points from it to the centre and ``gap = distance - r``;
+    * centre inside (or on the surface, to round-off): the nearer of the side
+      (``R - |rho|`` away, radial normal) and the cap on its side (``h - |z|``), whose
+      depth is the exact signed distance, so the gap is continuous across the surface.
+
+    Degenerate cases, all finite in value and gradient: a centre on the axis takes the
+    cylinder's body x axis as its radial direction; on an inside tie, the cap.
+    ``orientation_a`` is ignored.
+    """
+    position_a, orientation_a = geo.pose("sphere_cylinder (sphere)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("sphere_cylinder (cylinder)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
+    surface_a, normal, gap = ball_cylinder_contact(position_a, sphere.radius, position_b,
+                                                   geo.body_axes(orientation_b), cylinder.radius,
+                                                   cylinder.half_length)
+    return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
+
+
+def ball_cylinder_contact(
+    centre: Float[Array, "3"], radius: float, position_b: Float[Array, "3"], axes: Float[Array, "3 3"],
+    cylinder_radius: float, half_length: float,
+) -> tuple[Array, Array, Array]:
+    """A ball ``(centre, radius)`` (world frame, m) against a cylinder at ``position_b``
+    whose world axes are the rows of ``axes`` (its axis the third): A's surface point
+    ``(3,)``, the normal ``(3,)`` (world, cylinder to ball) and the gap ``()``. See
+    :func:`sphere_cylinder`."""
+    local = spatial.dot(axes, (centre - position_b)[None, :])  # cylinder frame
+    x_axis, z_axis = literal_array([1.0, 0.0, 0.0], local.dtype), literal_array([0.0, 0.0, 1.0], local.dtype)
+    radial = local * literal_array([1.0, 1.0, 0.0], local.dtype)
+    rho = spatial.safe_norm(radial)
+    outward = jnp.where(rho == 0, x_axis, radial / jnp.where(rho == 0, 1.0, rho))
+    height = local[2]
+    # Outside: the closest point of the solid (side, cap or rim).
+    closest = outward * jnp.minimum(rho, cylinder_radius) + z_axis * jnp.clip(height, -half_length, half_length)
+    offset = local - closest
+    outside_distance = spatial.safe_norm(offset)
+    # Within round-off of the surface counts as inside, as in ball_box_contact.
+    scale = jnp.max(jnp.abs(local)) + cylinder_radius + half_length
+    outside = outside_distance > 64 * jnp.finfo(local.dtype).eps * scale
+    # Inside: the nearer of the side and the cap on the centre's side.
+    side_depth, cap_depth = cylinder_radius - rho, half_length - jnp.abs(height)
+    side = side_depth < cap_depth
+    cap_sign = geo.sign_nonzero(height)
+    inside_normal = jnp.where(side, outward, cap_sign * z_axis)
+    inside_point = jnp.where(side, outward * cylinder_radius + z_axis * height,
+                             radial + z_axis * cap_sign * half_length)
+    normal_local = jnp.where(outside, spatial.safe_normalize(offset), inside_normal)
+    point_local = jnp.where(outside, closest, inside_point)
+    gap = jnp.where(outside, outside_distance, -jnp.minimum(side_depth, cap_depth)) - radius
+    to_world = spatial.transpose(axes)
+    normal = spatial.dot(to_world, normal_local[None, :])
+    surface_b = position_b + spatial.dot(to_world, point_local[None, :])
+    return surface_b + gap * normal, normal, gap
