@@ -162,10 +162,10 @@ plt.show()
 # 3.87 s after the drop.
 
 # %% [markdown]
-# ## 3 · Coulomb friction: a sliding box and a rolling ball
+# ## 3 · Coulomb friction: a sliding box, a rolling ball and a rolling can
 #
-# Two experiments share one scene, each with its own friction coefficient on its own
-# contact pair (the two bodies are 1 m apart and never meet):
+# Three experiments share one scene, each with its own friction coefficient on its own
+# contact pair (the bodies are 1 m apart and never meet):
 #
 # * a 1 kg cube of half-extent 0.1 m launched at $v_0$ = 5 m/s with $\mu$ = 0.5. Kinetic
 #   friction $\mu m g$ decelerates it uniformly: it stops after $t = v_0 / \mu g$ =
@@ -173,26 +173,35 @@ plt.show()
 # * a solid ball ($I = \tfrac25 m r^2$) launched at $v_0$ = 2 m/s with no spin and
 #   $\mu$ = 0.2. Friction slows it, $v = v_0 - \mu g t$, and spins it up, $r\omega =
 #   \tfrac52 \mu g t$, until the contact point stops slipping at $t = 2 v_0 / 7 \mu g$ =
-#   0.291 s. From then on it rolls at $\tfrac57 v_0$ = 1.429 m/s with no friction at all.
+#   0.291 s. From then on it rolls at $\tfrac57 v_0$ = 1.429 m/s with no friction at all;
+# * a solid cylinder ($I = \tfrac12 m r^2$ about its axis, r = 0.1 m) lying on its side,
+#   launched the same way. Its spin grows faster, $r\omega = 2 \mu g t$: it rolls from
+#   $t = v_0 / 3 \mu g$ = 0.340 s at $\tfrac23 v_0$ = 1.333 m/s, touching the ground
+#   at the lowest points of its two rims.
 
 # %%
 V_BOX, MU_BOX, V_BALL, MU_BALL, HALF = 5.0, 0.5, 2.0, 0.2, 0.1
 flat_scene = rb.Scene(
-    [rb.Body("box", shape=rb.Box((HALF, HALF, HALF)), mass=1.0), rb.Body("ball", shape=rb.Sphere(R), mass=1.0)],
+    [rb.Body("box", shape=rb.Box((HALF, HALF, HALF)), mass=1.0), rb.Body("ball", shape=rb.Sphere(R), mass=1.0),
+     rb.Body("can", shape=rb.Cylinder(R, 0.15), mass=1.0)],
     ground=rb.Plane(),
-    contacts=[("box", "ground"), ("ball", "ground")],
+    contacts=[("box", "ground"), ("ball", "ground"), ("can", "ground")],
 )
-flat_params = flat_scene.params(friction={("box", "ground"): MU_BOX, ("ball", "ground"): MU_BALL})
+FRICTION = {("box", "ground"): MU_BOX, ("ball", "ground"): MU_BALL, ("can", "ground"): MU_BALL}
+flat_params = flat_scene.params(friction=FRICTION)
 print("friction per pair:", dict(zip(flat_scene.contacts, np.asarray(flat_params.friction).tolist(), strict=True)))
-flat_state = flat_scene.state(flat_params, position=[(0, 0, HALF), (0, 1, R)],
-                              velocity=[(V_BOX, 0, 0), (V_BALL, 0, 0)])
+LYING = (np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0)  # the can's axis (body z) along world y
+UPRIGHT = (1.0, 0.0, 0.0, 0.0)
+flat_state = flat_scene.state(flat_params, position=[(0, 0, HALF), (0, 1, R), (0, 2, R)],
+                              orientation=[UPRIGHT, UPRIGHT, LYING],
+                              velocity=[(V_BOX, 0, 0), (V_BALL, 0, 0), (V_BALL, 0, 0)])
 flat_step = rb.make_step(flat_scene, SPLITTING, dt=DT, contact=rb.ContactSettings())
 flat_steps = round(T_FRICTION / DT)
 _, traj = rb.rollout(flat_step, flat_params, flat_state, num_steps=flat_steps)
 
 t_mid = np.asarray(traj.time) - DT / 2  # tangential velocities are step means
-v_box, v_ball = np.asarray(traj.velocity[:, 0, 0]), np.asarray(traj.velocity[:, 1, 0])
-r_omega = R * vmap_states(rb.angular_velocity, flat_params, traj)[:, 1, 1]
+v_box, v_ball, v_can = (np.asarray(traj.velocity[:, i, 0]) for i in range(3))
+r_omega, r_omega_can = (R * vmap_states(rb.angular_velocity, flat_params, traj)[:, i, 1] for i in (1, 2))
 
 
 def zero_crossing(t, y):
@@ -203,14 +212,17 @@ def zero_crossing(t, y):
 
 stop_time, stop_distance = zero_crossing(t_mid, v_box), float(traj.position[-1, 0, 0])
 roll_time, roll_speed = zero_crossing(t_mid, v_ball - r_omega), v_ball[-1]
+can_time, can_speed = zero_crossing(t_mid, v_can - r_omega_can), v_can[-1]
 print(f"box stops after {stop_time:.6f} s (closed form {V_BOX / (MU_BOX * G):.6f} s) "
       f"and {stop_distance:.6f} m (closed form {V_BOX**2 / (2 * MU_BOX * G):.6f} m)")
 print(f"ball rolls from {roll_time:.6f} s (closed form {2 * V_BALL / (7 * MU_BALL * G):.6f} s) "
       f"at {roll_speed:.6f} m/s (closed form 5 v0 / 7 = {5 * V_BALL / 7:.6f} m/s)")
+print(f"can rolls from {can_time:.6f} s (closed form {V_BALL / (3 * MU_BALL * G):.6f} s) "
+      f"at {can_speed:.6f} m/s (closed form 2 v0 / 3 = {2 * V_BALL / 3:.6f} m/s)")
 
 # %%
 t = np.linspace(0, T_FRICTION, 301)
-fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+fig, (left, right, can) = plt.subplots(1, 3, figsize=(15, 4))
 left.plot(t_mid, v_box, "o", ms=3, label="jaxrb")
 left.plot(t, np.maximum(V_BOX - MU_BOX * G * t, 0), "k:", label=r"$\max(v_0 - \mu g t, 0)$")
 left.set(xlabel="time (s)", ylabel="box velocity (m/s)", title=f"sliding box, mu = {MU_BOX}")
@@ -222,11 +234,19 @@ right.plot(t, np.where(t < t_roll, V_BALL - MU_BALL * G * t, 5 * V_BALL / 7), "k
 right.plot(t, np.where(t < t_roll, 2.5 * MU_BALL * G * t, 5 * V_BALL / 7), "k:", lw=1)
 right.set(xlabel="time (s)", ylabel="m/s", title=f"ball launched without spin, mu = {MU_BALL}")
 right.legend()
+t_can = V_BALL / (3 * MU_BALL * G)
+can.plot(t_mid, v_can, "o", ms=3, label=r"$v$")
+can.plot(t_mid, r_omega_can, "s", ms=3, label=r"$r \omega$")
+can.plot(t, np.where(t < t_can, V_BALL - MU_BALL * G * t, 2 * V_BALL / 3), "k:", lw=1, label="closed form")
+can.plot(t, np.where(t < t_can, 2 * MU_BALL * G * t, 2 * V_BALL / 3), "k:", lw=1)
+can.set(xlabel="time (s)", ylabel="m/s", title=f"can launched without spin, mu = {MU_BALL}")
+can.legend()
 plt.show()
 
 # %% [markdown]
-# Both match the closed forms to about $10^{-6}$, at a step of 10 ms: a stop at
-# 1.019368 s after 2.548419 m, rolling from 0.291248 s at 1.428571 m/s. (The times are
+# All three match the closed forms to about $10^{-6}$, at a step of 10 ms: a stop at
+# 1.019368 s after 2.548419 m; the ball rolling from 0.291248 s at 1.428571 m/s, the can
+# from 0.339789 s at 1.333333 m/s. (The times are
 # read at $t - h/2$, as section 1 explains; read at $t$ they would be late by $h/2$.)
 #
 # ## 4 · Inclines
@@ -261,36 +281,42 @@ print(f"30 deg incline, mu = {MU_BOX}: acceleration {incline_accel:.6f} m/s^2 "
 # rest, rolls without slipping at $\tfrac57 g\sin\theta$ as long as the friction this
 # needs, $\tfrac27 m g \sin\theta$, is within $\mu m g\cos\theta$, i.e. up to
 # $\tan\theta = \tfrac72\mu$ (35° for $\mu$ = 0.2); beyond that it slips, at
-# $g(\sin\theta - \mu\cos\theta)$.
+# $g(\sin\theta - \mu\cos\theta)$. The can rolls more slowly, at $\tfrac23
+# g\sin\theta$ (more of its mass is far from its axis), and needs more friction,
+# $\tfrac13 m g \sin\theta$: it slips beyond $\tan\theta = 3\mu$ (31°).
 
 # %%
 angles = np.arange(0.0, 45.1, 2.5)
-box_accel, ball_accel = [], []
+accels = []
 for degrees in angles:
     th = np.radians(degrees)
-    params = flat_scene.params(friction={("box", "ground"): MU_BOX, ("ball", "ground"): MU_BALL},
-                               gravity=(G * np.sin(th), 0.0, -G * np.cos(th)))
-    state = flat_scene.state(params, position=[(0, 0, HALF), (0, 1, R)])
+    params = flat_scene.params(friction=FRICTION, gravity=(G * np.sin(th), 0.0, -G * np.cos(th)))
+    state = flat_scene.state(params, position=[(0, 0, HALF), (0, 1, R), (0, 2, R)],
+                             orientation=[UPRIGHT, UPRIGHT, LYING])
     _, traj = rb.rollout(flat_step, params, state, num_steps=flat_steps)  # compiled in section 3
     x = np.asarray(traj.position[:, :, 0])
-    box_accel.append(2 * np.polyfit(np.asarray(traj.time), x[:, 0], 2)[0])
-    ball_accel.append(2 * np.polyfit(np.asarray(traj.time), x[:, 1], 2)[0])
-box_accel, ball_accel = np.array(box_accel), np.array(ball_accel)
+    accels.append(2 * np.polyfit(np.asarray(traj.time), x, 2)[0])  # (box, ball, can)
+box_accel, ball_accel, can_accel = np.transpose(accels)
 
 th = np.radians(angles)
 box_theory = np.maximum(G * (np.sin(th) - MU_BOX * np.cos(th)), 0.0)
 ball_theory = np.where(np.tan(th) <= 3.5 * MU_BALL, 5 / 7 * G * np.sin(th), G * (np.sin(th) - MU_BALL * np.cos(th)))
+can_theory = np.where(np.tan(th) <= 3 * MU_BALL, 2 / 3 * G * np.sin(th), G * (np.sin(th) - MU_BALL * np.cos(th)))
 print(f"gravity sweep over {len(angles)} slopes: max |a - closed form| box {np.max(np.abs(box_accel - box_theory)):.1e}"
-      f" m/s^2, ball {np.max(np.abs(ball_accel - ball_theory)):.1e} m/s^2")
+      f" m/s^2, ball {np.max(np.abs(ball_accel - ball_theory)):.1e} m/s^2, "
+      f"can {np.max(np.abs(can_accel - can_theory)):.1e} m/s^2")
 
 # %%
 fine = np.radians(np.linspace(0, 45, 451))
 fig, ax = plt.subplots(figsize=(7, 4.5))
 ax.plot(angles, box_accel, "o", label=f"box, mu = {MU_BOX} (tilted gravity)")
 ax.plot(angles, ball_accel, "s", label=f"ball, mu = {MU_BALL} (tilted gravity)")
+ax.plot(angles, can_accel, "^", label=f"can, mu = {MU_BALL} (tilted gravity)")
 ax.plot([30], [incline_accel], "k*", ms=12, label="box on a tilted plane")
 ax.plot(np.degrees(fine), np.maximum(G * (np.sin(fine) - MU_BOX * np.cos(fine)), 0), "k:", lw=1, label="closed forms")
 ax.plot(np.degrees(fine), np.where(np.tan(fine) <= 3.5 * MU_BALL, 5 / 7 * G * np.sin(fine),
+                                   G * (np.sin(fine) - MU_BALL * np.cos(fine))), "k:", lw=1)
+ax.plot(np.degrees(fine), np.where(np.tan(fine) <= 3 * MU_BALL, 2 / 3 * G * np.sin(fine),
                                    G * (np.sin(fine) - MU_BALL * np.cos(fine))), "k:", lw=1)
 ax.axvline(np.degrees(np.arctan(MU_BOX)), color="0.6", lw=0.7)
 ax.axvline(np.degrees(np.arctan(3.5 * MU_BALL)), color="0.6", lw=0.7)
@@ -302,7 +328,8 @@ plt.show()
 # %% [markdown]
 # The box stays put below the friction angle and then follows $g(\sin\theta -
 # \mu\cos\theta)$; the tilted plane at 30° and the tilted gravity agree. The ball rolls
-# at $\tfrac57 g \sin\theta$ and switches to slipping at 35°, where the two curves meet.
+# at $\tfrac57 g \sin\theta$ and switches to slipping at 35°, where the two curves meet;
+# the can at $\tfrac23 g \sin\theta$, until it slips from 31°.
 #
 # ## 5 · Newton's cradle
 #

@@ -345,14 +345,16 @@ def test_notebook_03_contacts_executes(tmp_path):
     with_toi = float(re.search(r"time_of_impact=True: max .* = (\S+) m", text).group(1))
     assert with_toi < 1e-6
 
-    # Sliding box, rolling ball and the 30 deg incline: measured within 1.1e-6 of the closed forms.
-    pairs = re.findall(r"([\d.]+) (?:s|m|m/s|m/s\^2) \(closed form (?:5 v0 / 7 = )?([\d.]+)", text)
-    assert len(pairs) == 5, pairs
+    # Sliding box, rolling ball and can, and the 30 deg incline: measured within 1.1e-6 of the
+    # closed forms.
+    pairs = re.findall(r"([\d.]+) (?:s|m|m/s|m/s\^2) \(closed form (?:5 v0 / 7 = |2 v0 / 3 = )?([\d.]+)", text)
+    assert len(pairs) == 7, pairs
     for measured, closed in pairs:
         assert float(measured) == pytest.approx(float(closed), abs=1e-4)
-    # The slope sweep by tilted gravity (measured 1.1e-7 and 5.4e-14 m/s^2).
-    box, ball = map(float, re.search(r"box (\S+) m/s\^2, ball (\S+) m/s\^2", text).groups())
-    assert box < 1e-4 and ball < 1e-4
+    # The slope sweep by tilted gravity (measured 1.1e-7, 5.4e-14 and 1.4e-7 m/s^2 for the
+    # box, the ball and the can).
+    box, ball, can = map(float, re.search(r"box (\S+) m/s\^2, ball (\S+) m/s\^2, can (\S+) m/s\^2", text).groups())
+    assert box < 1e-4 and ball < 1e-4 and can < 1e-4
 
     # Newton's cradle, e = 1: k in, k out; momentum and energy kept.
     for moving in (1, 2, 3):
