@@ -20,7 +20,7 @@
 #
 # 1. how a step with contacts works (kick, solve, drift, kick; the time of impact);
 # 2. a bouncing ball, whose apexes follow $e^{2n}$;
-# 3. Coulomb friction: a sliding box and a ball that slips, then rolls;
+# 3. Coulomb friction: a sliding box, and a ball and a can that slip, then roll;
 # 4. inclines: a tilted ground plane, and a sweep of slopes without recompiling;
 # 5. Newton's cradle, with `rb.contact.resolve_impacts`;
 # 6. a small stack: projected Gauss–Seidel against the exact normal solve.
