@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
 from .._indexing import literal_array
@@ -176,20 +176,7 @@ def capsule_box(
     def distance(s):
         return jax.lax.stop_gradient(ball(s)[2])
 
-    golden = (5.0**0.5 - 1.0) / 2.0
-
-    def shrink(bracket, _):
-        low, high = bracket
-        left, right = high - golden * (high - low), low + golden * (high - low)
-        keep_left = distance(left) <= distance(right)  # the minimiser lies in [low, right]
-        return (jnp.where(keep_left, low, left), jnp.where(keep_left, right, high)), None
-
-    start = (jnp.asarray(-half, dtype), jnp.asarray(half, dtype))
-    (low, high), _ = jax.lax.scan(shrink, start, None, length=GOLDEN_ITERATIONS)
-    # The bracket closes on an end without reaching it: the ends are candidates of their own.
-    s_candidates = jnp.stack([(low + high) / 2, -start[1], start[1]])
-    s_search = _newton_step(lambda s: ball(s)[2], jax.lax.stop_gradient(
-        s_candidates[jnp.argmin(jax.vmap(distance)(s_candidates))]), half)
+    s_search = _newton_step(lambda s: ball(s)[2], _closest_point(distance, half, dtype), half)
     normal_box = ball(s_search)[3]
 
     # The overlap: the segment clipped to the slabs of the face slot 0's normal points out of.
@@ -228,6 +215,55 @@ def capsule_box(
     gap = jnp.where(first & crossing, sat_gap - capsule.radius, gap)
     distinct = overlaps & (jnp.abs(s1 - s0) > _DISTINCT_FRACTION * capsule.radius)
     return contact_from_surface_point(surface_a, normal, gap, margin, valid=jnp.stack([jnp.ones((), bool), distinct]))
+
+
+def capsule_box_separation(
+    capsule: Capsule,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    box: Box,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+) -> Float[Array, ""]:
+    """The gap (m) of the capsule's ball at its segment point closest to the box: slot 0 of
+    :func:`capsule_box` without its refining Newton step, its second slot and, where the
+    segment meets the box, its separating axes, for the time-of-impact search to evaluate
+    many times. Zero exactly when they touch, positive when apart (the distance, to
+    round-off), negative when they overlap (the depth until the segment itself meets the
+    box, a smaller depth after).
+
+    Its derivative in the poses holds the point on the segment (the search's is none): at
+    a minimum over the segment the point's own derivative adds nothing to the distance's
+    (the distance's slope along the segment is 0 there, or the point is at an end)."""
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, orientation_a, position_b, orientation_b = geo.as_float(
+        dtype, position_a, orientation_a, position_b, orientation_b)
+    axis = geo.body_axes(orientation_a)[2]
+    axes_b, half_box = geo.body_axes(orientation_b), literal_array(box.half_extents, dtype)
+
+    def gap(s):
+        return ball_box_contact(position_a + s * axis, capsule.radius, position_b, axes_b, half_box)[2]
+
+    return gap(_closest_point(lambda s: jax.lax.stop_gradient(gap(s)), capsule.half_length, dtype))
+
+
+def _closest_point(distance, half, dtype):
+    """The segment parameter ``s`` in ``[-half, half]`` where the convex ``distance(s)`` is
+    smallest: a golden-section search of ``GOLDEN_ITERATIONS`` steps, with the two ends as
+    candidates of their own (the bracket closes on an end without reaching it). Values
+    only: no derivative."""
+    golden = (5.0**0.5 - 1.0) / 2.0
+
+    def shrink(bracket, _):
+        low, high = bracket
+        left, right = high - golden * (high - low), low + golden * (high - low)
+        keep_left = distance(left) <= distance(right)  # the minimiser lies in [low, right]
+        return (jnp.where(keep_left, low, left), jnp.where(keep_left, right, high)), None
+
+    start = (jnp.asarray(-half, dtype), jnp.asarray(half, dtype))
+    (low, high), _ = jax.lax.scan(shrink, start, None, length=GOLDEN_ITERATIONS)
+    candidates = jnp.stack([(low + high) / 2, -start[1], start[1]])
+    return jax.lax.stop_gradient(candidates[jnp.argmin(jax.vmap(distance)(candidates))])
 
 
 def _newton_step(gap, s, half):
