@@ -227,20 +227,22 @@ left.plot(t_mid, v_box, "o", ms=3, label="jaxrb")
 left.plot(t, np.maximum(V_BOX - MU_BOX * G * t, 0), "k:", label=r"$\max(v_0 - \mu g t, 0)$")
 left.set(xlabel="time (s)", ylabel="box velocity (m/s)", title=f"sliding box, mu = {MU_BOX}")
 left.legend()
-t_roll = 2 * V_BALL / (7 * MU_BALL * G)
-right.plot(t_mid, v_ball, "o", ms=3, label=r"$v$")
-right.plot(t_mid, r_omega, "s", ms=3, label=r"$r \omega$")
-right.plot(t, np.where(t < t_roll, V_BALL - MU_BALL * G * t, 5 * V_BALL / 7), "k:", lw=1, label="closed form")
-right.plot(t, np.where(t < t_roll, 2.5 * MU_BALL * G * t, 5 * V_BALL / 7), "k:", lw=1)
-right.set(xlabel="time (s)", ylabel="m/s", title=f"ball launched without spin, mu = {MU_BALL}")
-right.legend()
-t_can = V_BALL / (3 * MU_BALL * G)
-can.plot(t_mid, v_can, "o", ms=3, label=r"$v$")
-can.plot(t_mid, r_omega_can, "s", ms=3, label=r"$r \omega$")
-can.plot(t, np.where(t < t_can, V_BALL - MU_BALL * G * t, 2 * V_BALL / 3), "k:", lw=1, label="closed form")
-can.plot(t, np.where(t < t_can, 2 * MU_BALL * G * t, 2 * V_BALL / 3), "k:", lw=1)
-can.set(xlabel="time (s)", ylabel="m/s", title=f"can launched without spin, mu = {MU_BALL}")
-can.legend()
+
+
+def slip_then_roll(ax, v, r_omega, spin_rate, rolling_speed, body):
+    """A body launched at V_BALL without spin: v = v0 - mu g t, r omega = spin_rate mu g t,
+    until both reach the rolling speed."""
+    t_roll = (V_BALL - rolling_speed) / (MU_BALL * G)
+    ax.plot(t_mid, v, "o", ms=3, label=r"$v$")
+    ax.plot(t_mid, r_omega, "s", ms=3, label=r"$r \omega$")
+    ax.plot(t, np.where(t < t_roll, V_BALL - MU_BALL * G * t, rolling_speed), "k:", lw=1, label="closed form")
+    ax.plot(t, np.where(t < t_roll, spin_rate * MU_BALL * G * t, rolling_speed), "k:", lw=1)
+    ax.set(xlabel="time (s)", ylabel="m/s", title=f"{body} launched without spin, mu = {MU_BALL}")
+    ax.legend()
+
+
+slip_then_roll(right, v_ball, r_omega, 2.5, 5 * V_BALL / 7, "ball")
+slip_then_roll(can, v_can, r_omega_can, 2.0, 2 * V_BALL / 3, "can")
 plt.show()
 
 # %% [markdown]
