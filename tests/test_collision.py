@@ -791,6 +791,10 @@ def _degenerate_cases():
         # The cylinder (r 0.2, h 0.35): from its centre the side is nearer than the caps.
         ("sphere centre at cylinder centre", "sphere", "cylinder", (z, IDENTITY, z, q), -0.55),
         ("sphere centre on cylinder axis", "sphere", "cylinder", (0.3 * quat_matrix(q)[:, 2], IDENTITY, z, q), -0.4),
+        # Nearer the side: its radial direction is round-off, which jit rounded two ways
+        # (a normal of length 1.15 before body x was taken within round-off of the axis).
+        ("sphere centre on cylinder axis, side nearer", "sphere", "cylinder",
+         (0.1 * quat_matrix(q)[:, 2], IDENTITY, z, q), -0.55),
         ("sphere centre on cylinder rim", "sphere", "cylinder", (np.array([0.2, 0.0, 0.35]), IDENTITY, z, IDENTITY),
          -0.35),
         ("sphere touching cylinder side", "sphere", "cylinder", (np.array([0.0, 0.55, 0.1]), IDENTITY, z, IDENTITY),

@@ -211,15 +211,19 @@ def ball_cylinder_contact(
     x_axis, z_axis = literal_array([1.0, 0.0, 0.0], local.dtype), literal_array([0.0, 0.0, 1.0], local.dtype)
     radial = local * literal_array([1.0, 1.0, 0.0], local.dtype)
     rho = spatial.safe_norm(radial)
-    outward = jnp.where(rho == 0, x_axis, radial / jnp.where(rho == 0, 1.0, rho))
+    # Within round-off of the axis, the radial direction is body x. Its components are
+    # round-off there, and XLA may round them differently where it computes them again
+    # for rho (a centre 0.1 m along a turned axis: |radial / rho| = 1.15 under jit).
+    round_off = 64 * jnp.finfo(local.dtype).eps * (jnp.max(jnp.abs(local)) + cylinder_radius + half_length)
+    on_axis = rho <= round_off
+    outward = jnp.where(on_axis, x_axis, radial / jnp.where(on_axis, 1.0, rho))
     height = local[2]
     # Outside: the closest point of the solid (side, cap or rim).
     closest = outward * jnp.minimum(rho, cylinder_radius) + z_axis * jnp.clip(height, -half_length, half_length)
     offset = local - closest
     outside_distance = spatial.safe_norm(offset)
     # Within round-off of the surface counts as inside, as in ball_box_contact.
-    scale = jnp.max(jnp.abs(local)) + cylinder_radius + half_length
-    outside = outside_distance > 64 * jnp.finfo(local.dtype).eps * scale
+    outside = outside_distance > round_off
     # Inside: the nearer of the side and the cap on the centre's side.
     side_depth, cap_depth = cylinder_radius - rho, half_length - jnp.abs(height)
     side = side_depth < cap_depth
