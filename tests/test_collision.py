@@ -31,7 +31,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-from scipy.optimize import minimize  # noqa: E402
+from scipy.optimize import minimize, minimize_scalar  # noqa: E402
 
 from jaxrb import collision  # noqa: E402
 from jaxrb.shapes import Box, Capsule, Cylinder, Plane, Sphere  # noqa: E402
@@ -210,10 +210,12 @@ PAIRS = [
     ("capsule", "rod"),
     ("box", "crate"),
     ("capsule", "box"),
+    ("capsule", "cylinder"),
     ("box", "sphere"),
     ("capsule", "sphere"),
     ("box", "capsule"),
     ("cylinder", "sphere"),
+    ("cylinder", "capsule"),
 ]
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 BATCH = 32  # every batch is padded to this size, so each pair compiles once
@@ -278,7 +280,9 @@ def sampled_cases(a, b, count=16, seed=0):
         if not ((0 < coarse < MARGIN) if separated else (-0.3 < coarse < 0)):
             continue
         if "cylinder" in (a, b):  # the support function's polish has no cylinder term
-            ref = _ball_cylinder_reference(shape_a, shape_b)
+            ref = _cylinder_reference(shape_a, shape_b)
+            if "capsule" in (a, b) and _segment_enters_cylinder(shape_a, shape_b):
+                continue  # capsule-cylinder's gap is exact only while the segment stays out
         else:
             ref = reference_signed_distance(shape_a, shape_b)
         if ref[0] < MARGIN - 1e-3:
@@ -287,20 +291,45 @@ def sampled_cases(a, b, count=16, seed=0):
     return tuple(np.array(x) for x in zip(*poses, strict=True)), refs
 
 
-def _ball_cylinder_reference(a, b):
-    """``(sd, normal, unique)`` of a sphere and a cylinder (either order): the cylinder's
-    signed distance function (:func:`surface_distance`) at the sphere's centre, less its
-    radius, and the normal from that function's central-difference gradient (B to A);
-    unique where the gradient has unit length (not on a kink of the function)."""
-    ball, cylinder, sign = (a, b, 1.0) if a[0] == "sphere" else (b, a, -1.0)
-    centre = ball[2]
-    sd = surface_distance(cylinder, centre[None])[0] - ball[1][0]
+def _cylinder_reference(a, b):
+    """``(sd, normal, unique)`` of a sphere or a capsule and a cylinder (either order): the
+    cylinder's signed distance function (:func:`surface_distance`) at the sphere's centre,
+    or at the capsule's segment point where it is smallest (the function is convex along
+    the segment: a grid, then scipy's bounded Brent search), less the radius; the normal
+    from that function's central-difference gradient there (B to A); unique where the
+    gradient has unit length (not on a kink of the function). For a capsule whose segment
+    stays outside the cylinder this is the signed distance; where the segment enters it,
+    the deepest segment point's (what capsule-cylinder documents)."""
+    other, cylinder, sign = (a, b, 1.0) if b[0] == "cylinder" else (b, a, -1.0)
+    point = _deepest_segment_point(other, cylinder) if other[0] == "capsule" else other[2]
+    sd = surface_distance(cylinder, point[None])[0] - other[1][0]
     h = 1e-6
-    steps = centre[None, :] + h * np.concatenate([np.eye(3), -np.eye(3)])
+    steps = point[None, :] + h * np.concatenate([np.eye(3), -np.eye(3)])
     values = surface_distance(cylinder, steps)
     gradient = (values[:3] - values[3:]) / (2 * h)
     length = np.linalg.norm(gradient)  # 0 where the function is symmetric (the centre)
     return sd, sign * gradient / max(length, 1e-300), abs(length - 1.0) < 1e-6
+
+
+def _deepest_segment_point(capsule, cylinder):
+    """The point of a capsule's segment where the cylinder's signed distance is smallest."""
+    _, (_, half), centre, rotation = capsule
+    axis = rotation[:, 2]
+
+    def distance(s):
+        return surface_distance(cylinder, (centre + s * axis)[None])[0]
+
+    grid = np.linspace(-half, half, 401)
+    j = int(np.argmin([distance(s) for s in grid]))
+    found = minimize_scalar(distance, bounds=(grid[max(j - 1, 0)], grid[min(j + 1, 400)]), method="bounded",
+                            options=dict(xatol=1e-13))
+    s = min((found.x, -half, half), key=distance)
+    return centre + s * axis
+
+
+def _segment_enters_cylinder(a, b):
+    capsule, cylinder = (a, b) if a[0] == "capsule" else (b, a)
+    return surface_distance(cylinder, _deepest_segment_point(capsule, cylinder)[None])[0] <= 0
 
 
 def _pad(*arrays):
@@ -745,6 +774,83 @@ def test_parallel_capsules_give_two_points_and_crossed_ones_one():
     np.testing.assert_allclose(c.normal[0], [[0, 0, 1.0]] * 2, atol=1e-15)
 
 
+def test_a_capsule_on_a_cylinder_lies_on_two_points_and_crosses_on_one():
+    """The capsule (r 0.15, h 0.4) 2 mm into the cylinder (r 0.2, h 0.35), margin 1 cm.
+    Lying across the top cap: the two ends of the part of its segment over the cap's disc,
+    on the rim at x = -+0.2. Lying along the side: the ends of the part within the caps'
+    slab, z = -0.3 and 0.35. Across the side, perpendicular to the axis: one point."""
+    depth = 0.002
+    lying = axis_angle([0, 1, 0], np.pi / 2)  # axis along x
+    across = axis_angle([1, 0, 0], np.pi / 2)  # axis along y
+    poses = [(np.array([0.05, 0.0, 0.5 - depth]), lying), (np.array([0.35 - depth, 0.0, 0.1]), IDENTITY),
+             (np.array([0.35 - depth, 0.0, 0.0]), across)]
+    pa, qa = (np.array(x) for x in zip(*poses, strict=True))
+    c = run("capsule", "cylinder", pa, qa, np.zeros((3, 3)), np.tile(IDENTITY, (3, 1)), margin=0.01)
+    assert list(c.active.sum(axis=1)) == [2, 2, 1]
+    on_cylinder = c.point - 0.5 * c.gap[..., None] * c.normal
+    np.testing.assert_allclose(c.gap[:2], -depth, atol=1e-14)
+    np.testing.assert_allclose(np.sort(on_cylinder[0][:, 0]), [-0.2, 0.2], atol=1e-14)
+    np.testing.assert_allclose(on_cylinder[0][:, 2], 0.35, atol=1e-14)
+    np.testing.assert_allclose(c.normal[0], [[0, 0, 1.0]] * 2, atol=1e-15)
+    np.testing.assert_allclose(np.sort(on_cylinder[1][:, 2]), [-0.3, 0.35], atol=1e-14)
+    np.testing.assert_allclose(c.normal[1], [[1.0, 0, 0]] * 2, atol=1e-15)
+    np.testing.assert_allclose(c.gap[2][c.active[2]], -depth, atol=1e-14)
+    np.testing.assert_allclose(on_cylinder[2][c.active[2]], [[0.2, 0.0, 0.0]], atol=1e-8)
+
+
+def test_capsule_cylinder_separation_is_the_smallest_capsule_cylinder_gap():
+    """The value the time-of-impact search uses for capsule-cylinder: on the sampled poses
+    (the segment outside the cylinder), the smallest gap of :func:`capsule_cylinder` and
+    its derivative; zero when lying on the cap, -1 mm when 1 mm into it."""
+    from jaxrb.collision._capsule import capsule_cylinder_separation
+
+    capsule, cylinder = SHAPES["capsule"][0], SHAPES["cylinder"][0]
+
+    def separation_and_gap(pa, qa, pb, qb, d):
+        def both(pa):
+            c = collision.capsule_cylinder(capsule, pa, qa, cylinder, pb, qb, margin=MARGIN)
+            return (capsule_cylinder_separation(capsule, pa, qa, cylinder, pb, qb),
+                    jnp.min(jnp.where(c.active, c.gap, jnp.inf)))
+        return jax.jvp(both, (pa,), (d,))
+
+    (pa, qa, pb, qb), _ = sampled_cases("capsule", "cylinder")
+    d = np.random.default_rng(3).normal(size=pa.shape)
+    (sep, gap), (dsep, dgap) = (np.asarray(x) for x in np.asarray(jax.jit(jax.vmap(separation_and_gap))(
+        pa, qa, pb, qb, d)))
+    assert np.isfinite(gap).all() and (gap < 0).sum() >= 4
+    np.testing.assert_allclose(sep, gap, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dsep, dgap, rtol=0, atol=1e-6)
+    lying = axis_angle([0, 1, 0], np.pi / 2)
+    for depth in (0.0, 1e-3):
+        at = np.array([0.05, 0.0, 0.35 + capsule.radius - depth])
+        value = capsule_cylinder_separation(capsule, at, lying, cylinder, np.zeros(3), IDENTITY)
+        np.testing.assert_allclose(float(value), -depth, rtol=0, atol=1e-12)
+
+
+def test_a_capsule_whose_segment_enters_a_cylinder_is_pushed_out_at_its_deepest_point():
+    """Where the segment enters the cylinder, the documented gap: the cylinder's signed
+    distance at the segment's deepest point less the radius (independent reference, 1e-9:
+    the reference's Brent search stops at a kink), with that point's normal; never deeper
+    than the true penetration (a lower bound of the signed distance over 4000 directions)."""
+    rng = np.random.default_rng(5)
+    poses, refs = [], []
+    while len(poses) < 12:
+        pa, (qa, qb) = rng.uniform(-0.4, 0.4, 3), random_quats(rng, 2)
+        shape_a, shape_b = body("capsule", pa, qa), body("cylinder", np.zeros(3), qb)
+        if _segment_enters_cylinder(shape_a, shape_b):
+            poses.append((pa, qa, np.zeros(3), qb))
+            refs.append((_cylinder_reference(shape_a, shape_b), separation(FIBONACCI, shape_a, shape_b).max()))
+    pa, qa, pb, qb = (np.array(x) for x in zip(*poses, strict=True))
+    c = run("capsule", "cylinder", pa, qa, pb, qb)
+    k, gap = min_active(c)
+    np.testing.assert_allclose(gap, [r[0][0] for r in refs], rtol=0, atol=1e-9)
+    assert np.all(gap <= -SHAPES["capsule"][1][1][0])
+    assert np.all(gap >= np.array([r[1] for r in refs]) - 1e-12)
+    for i, ((_, normal, unique), _) in enumerate(refs):
+        if unique:
+            np.testing.assert_allclose(c.normal[i, k[i]], normal, atol=1e-6)
+
+
 # ============================================================================ degenerate cases
 
 
@@ -799,6 +905,14 @@ def _degenerate_cases():
          -0.35),
         ("sphere touching cylinder side", "sphere", "cylinder", (np.array([0.0, 0.55, 0.1]), IDENTITY, z, IDENTITY),
          0.0),
+        # The capsule (r 0.15, h 0.4) against the cylinder: lying across the top cap, along
+        # the side, and with its segment on the cylinder's axis (a flat minimum, -0.2 m
+        # along 0.3 m of the segment).
+        ("capsule lying across a cylinder cap", "capsule", "cylinder",
+         (np.array([0.05, 0.0, 0.5]), lying, z, IDENTITY), 0.0),
+        ("capsule along a cylinder side", "capsule", "cylinder", (np.array([0.35, 0.0, 0.1]), IDENTITY, z, IDENTITY),
+         0.0),
+        ("capsule segment on cylinder axis", "capsule", "cylinder", (z, q, z, q), -0.35),
         ("sphere centre on capsule axis", "sphere", "capsule", (z, IDENTITY, z, q), -0.5),
         ("sphere centre at capsule end", "sphere", "capsule", (np.array([0, 0, 0.4]), IDENTITY, z, IDENTITY), -0.5),
         ("parallel capsules touching", "capsule", "rod", (np.array([0.4, 0.0, 0.1]), IDENTITY, z, IDENTITY), 0.0),
@@ -827,7 +941,7 @@ def test_degenerate_cases_have_finite_values_and_gradients(case):
     if expected is not None:
         np.testing.assert_allclose(min_active(c)[1], expected, atol=1e-14)
     if b != "plane":
-        reference = _ball_cylinder_reference if b == "cylinder" else reference_signed_distance
+        reference = _cylinder_reference if b == "cylinder" else reference_signed_distance
         ref, _, _ = reference(body(a, *[p[0] for p in poses[:2]]), body(b, *[p[0] for p in poses[2:]]))
         np.testing.assert_allclose(min_active(c)[1], ref, atol=1e-12)
     value, grad, _ = gradient(a, b, *(p[0] for p in poses), c.active[0])
@@ -857,7 +971,7 @@ def _central_differences(a, b, pa, qa, pb, qb, weights, mask, h=1e-6):
     return (scalar[:12] - scalar[12:]) / (2 * h)
 
 
-@pytest.mark.parametrize("pair", PAIRS[:11], ids="-".join)
+@pytest.mark.parametrize("pair", PAIRS[:12], ids="-".join)
 def test_gradients_match_finite_differences(pair):
     """Reverse-mode gradient of gaps, points and normals vs central differences, h = 1e-6.
 
@@ -1000,6 +1114,7 @@ def test_max_contacts_and_unsupported_pairs():
         (Sphere, Cylinder): 1,
         (Capsule, Capsule): 2,
         (Capsule, Box): 2,
+        (Capsule, Cylinder): 2,
         (Box, Box): 4,
     }
     for (ta, tb), k in expected.items():
@@ -1007,8 +1122,8 @@ def test_max_contacts_and_unsupported_pairs():
     assert collision.max_contacts(Box((1, 1, 1)), Sphere(1.0)) == 1
     with pytest.raises(ValueError, match="Supported pairs.*Sphere-Plane"):
         collision.collide(Box((1, 1, 1)), np.zeros(3), IDENTITY, Cylinder(1.0, 1.0), np.zeros(3), IDENTITY)
-    with pytest.raises(ValueError, match="Cylinder, Capsule"):
-        collision.max_contacts(Cylinder, Capsule)
+    with pytest.raises(ValueError, match="Cylinder, Box"):
+        collision.max_contacts(Cylinder, Box)
 
 
 def test_bad_inputs_fail_early():

@@ -21,6 +21,9 @@ sphere-cylinder    1    closest point of the solid, or nearest face from inside
 capsule-capsule    2    closest pair + the other end of the overlap
 capsule-box        2    closest segment point (SAT where the segment meets the box)
                         + the other end of the segment's overlap with that face
+capsule-cylinder   2    closest segment point + the other end of its overlap with
+                        the cap's disc or the side's slab (see its docstring for a
+                        segment that enters the cylinder)
 box-box            4    SAT; clipped face manifold reduced to 4, or one edge-edge
 =================  ===  ==========================================================
 """
@@ -28,6 +31,7 @@ box-box            4    SAT; clipped face manifold reduced to 4, or one edge-edg
 from ._box import box_box as box_box
 from ._capsule import capsule_box as capsule_box
 from ._capsule import capsule_capsule as capsule_capsule
+from ._capsule import capsule_cylinder as capsule_cylinder
 from ._contact import Contact as Contact
 from ._contact import concatenate_contacts as concatenate_contacts
 from ._dispatch import collide as collide

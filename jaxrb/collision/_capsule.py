@@ -1,4 +1,4 @@
-"""Capsule (A) against capsule (B) and against a box (B): ``K = 2`` each.
+"""Capsule (A) against capsule (B), a box (B) and a cylinder (B): ``K = 2`` each.
 
 A capsule is a segment ``c + s a``, ``|s| <= half_length`` (``a`` = its body z axis),
 rounded by its radius, so capsule-capsule is segment-segment distance (Ericson,
@@ -35,6 +35,10 @@ the segment, chosen the same way:
 A segment that crosses the box's interior (a penetration deeper than the radius) has a
 kink at the minimum; the gap's derivative there is that of the face the point lies
 nearest to, with the point held.
+
+Capsule-cylinder is the same construction with a ball-cylinder contact
+(:func:`._sphere.ball_cylinder_contact`): the overlap is the part of the segment over the
+cap's disc, or within the caps' slab on the side (see :func:`capsule_cylinder`).
 """
 
 from __future__ import annotations
@@ -45,12 +49,12 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
 from .._indexing import literal_array
-from ..shapes import Box, Capsule
+from ..shapes import Box, Capsule, Cylinder
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
-from ._sphere import ball_box_contact, rounded_points_contact
+from ._sphere import ball_box_contact, ball_cylinder_contact, rounded_points_contact
 
-__all__ = ["capsule_box", "capsule_capsule"]
+__all__ = ["capsule_box", "capsule_capsule", "capsule_cylinder"]
 
 #: Golden-section steps for the segment point closest to a box: the bracket shrinks by
 #: 0.618 a step, to 1e-10 of the segment's length after 48.
@@ -189,20 +193,10 @@ def capsule_box(
     inside = jnp.abs(centre) <= half_box  # a slab the segment runs parallel to: all or nothing
     enter = jnp.where(moving, jnp.min(ends, 0), jnp.where(inside, -half, half))
     leave = jnp.where(moving, jnp.max(ends, 0), jnp.where(inside, half, -half))
-    lo = jnp.maximum(-half, jnp.max(jnp.where(tangential, enter, -half)))
-    hi = jnp.minimum(half, jnp.min(jnp.where(tangential, leave, half)))
-    overlaps = lo <= hi
-    lo, hi = jnp.where(overlaps, lo, s_search), jnp.where(overlaps, hi, s_search)
-
-    # Slot 0: an end of the overlap unless the search's point is closer by more than
-    # round-off; slot 1: the overlap's other end.
-    s_ends = jnp.stack([lo, hi])
-    end_gap = jax.vmap(lambda s: ball(s)[2])(s_ends)
-    best_end = jnp.argmin(end_gap)
     tolerance = 64 * jnp.finfo(dtype).eps * (spatial.safe_norm(centre) + half + jnp.sum(half_box))
-    use_search = distance(s_search) < jax.lax.stop_gradient(end_gap[best_end]) - tolerance
-    s0 = jnp.where(use_search, s_search, s_ends[best_end])
-    s1 = jnp.where(jnp.abs(hi - s0) >= jnp.abs(lo - s0), hi, lo)
+    s0, s1, overlaps = _overlap_slots(
+        ball, distance, s_search, jnp.max(jnp.where(tangential, enter, -half)),
+        jnp.min(jnp.where(tangential, leave, half)), half, tolerance)
     surface_a, normal, gap, _ = jax.vmap(ball)(jnp.stack([s0, s1]))
 
     # Where the segment itself meets the box, slot 0 is the separating-axis contact.
@@ -213,8 +207,7 @@ def capsule_box(
     surface_a = jnp.where(first[:, None] & crossing, sat_surface - capsule.radius * sat_normal, surface_a)
     normal = jnp.where(first[:, None] & crossing, sat_normal, normal)
     gap = jnp.where(first & crossing, sat_gap - capsule.radius, gap)
-    distinct = overlaps & (jnp.abs(s1 - s0) > _DISTINCT_FRACTION * capsule.radius)
-    return contact_from_surface_point(surface_a, normal, gap, margin, valid=jnp.stack([jnp.ones((), bool), distinct]))
+    return _two_slots(surface_a, normal, gap, margin, s0, s1, overlaps, capsule.radius)
 
 
 def capsule_box_separation(
@@ -235,16 +228,145 @@ def capsule_box_separation(
     Its derivative in the poses holds the point on the segment (the search's is none): at
     a minimum over the segment the point's own derivative adds nothing to the distance's
     (the distance's slope along the segment is 0 there, or the point is at an end)."""
+    half_box = box.half_extents
+    return _gap_at_closest_point(capsule, position_a, orientation_a, position_b, orientation_b,
+                                 lambda c, p, axes: ball_box_contact(c, capsule.radius, p, axes,
+                                                                     literal_array(half_box, c.dtype))[2])
+
+
+def capsule_cylinder(
+    capsule: Capsule,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    cylinder: Cylinder,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Capsule (A) against cylinder (B): ``K = 2``, the ball of the capsule's radius at two
+    segment points against the cylinder (:func:`._sphere.ball_cylinder_contact`).
+
+    * slot 0: the segment point closest to the cylinder (the cylinder's signed distance is
+      convex along the segment, so the golden-section search of capsule-box finds it, and
+      one Newton step refines it), or an end of the overlap below where that is as close;
+    * slot 1: the overlap's other end. The overlap is the part of the segment over the
+      face slot 0 touches: over the cap's disc where slot 0's normal is nearer the axis
+      than the side's (a capsule lying across the top of a can: its two ends on the cap,
+      or on the rim where it overhangs), within the caps' slab otherwise (a capsule lying
+      along the side). Active only within the margin and when distinct from slot 0.
+
+    Slot 0's gap is the exact signed distance while the segment stays outside the cylinder
+    (a penetration shallower than the capsule's radius). Where the segment itself enters
+    the cylinder it is the signed distance of the segment's deepest point less the radius,
+    along that point's nearest face: a smaller depth than the true one (which no finite set
+    of separating axes gives for a curved side), pushing the deepest point out. Degenerate
+    cases are those of :func:`._sphere.sphere_cylinder`, finite in value and gradient.
+    """
+    position_a, orientation_a = geo.pose("capsule_cylinder (capsule)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("capsule_cylinder (cylinder)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    position_a, orientation_a, position_b, orientation_b = geo.as_float(
+        dtype, position_a, orientation_a, position_b, orientation_b
+    )
+    axis = geo.body_axes(orientation_a)[2]
+    axes_b = geo.body_axes(orientation_b)
+    half, radius_b, half_b = capsule.half_length, cylinder.radius, cylinder.half_length
+    eps = jnp.finfo(dtype).eps
+
+    def ball(s):
+        return ball_cylinder_contact(position_a + s * axis, capsule.radius, position_b, axes_b, radius_b, half_b)
+
+    def distance(s):  # the search compares values only (see _newton_step)
+        return jax.lax.stop_gradient(ball(s)[2])
+
+    s_search = _newton_step(lambda s: ball(s)[2], _closest_point(distance, half, dtype), half)
+    normal_local = spatial.dot(axes_b, ball(s_search)[1][None, :])
+    centre = spatial.dot(axes_b, (position_a - position_b)[None, :])  # cylinder frame
+    direction = spatial.dot(axes_b, axis[None, :])
+
+    # Over the disc: |radial(centre + s direction)| <= radius_b, a quadratic in s.
+    a = direction[0] ** 2 + direction[1] ** 2
+    b = centre[0] * direction[0] + centre[1] * direction[1]
+    c = centre[0] ** 2 + centre[1] ** 2 - radius_b**2
+    discriminant = b * b - a * c
+    tilted = a > eps  # not parallel to the axis
+    crosses = discriminant > 0
+    root = jnp.where(crosses, jnp.sqrt(jnp.where(crosses, discriminant, 1.0)), 0.0)
+    a_safe = jnp.where(tilted, a, 1.0)
+    over_disc = c <= 0  # a segment parallel to the axis: all of it or none
+    disc_enter = jnp.where(tilted, jnp.where(crosses, (-b - root) / a_safe, half), jnp.where(over_disc, -half, half))
+    disc_leave = jnp.where(tilted, jnp.where(crosses, (-b + root) / a_safe, -half), jnp.where(over_disc, half, -half))
+    # Within the slab |z| <= half_b.
+    moving = jnp.abs(direction[2]) > eps
+    step = jnp.where(moving, direction[2], 1.0)
+    ends = jnp.stack([(-half_b - centre[2]) / step, (half_b - centre[2]) / step])
+    in_slab = jnp.abs(centre[2]) <= half_b
+    slab_enter = jnp.where(moving, jnp.min(ends), jnp.where(in_slab, -half, half))
+    slab_leave = jnp.where(moving, jnp.max(ends), jnp.where(in_slab, half, -half))
+    on_cap = normal_local[2] ** 2 >= 0.5
+    tolerance = 64 * eps * (spatial.safe_norm(centre) + half + radius_b + half_b)
+    s0, s1, overlaps = _overlap_slots(ball, distance, s_search, jnp.where(on_cap, disc_enter, slab_enter),
+                                      jnp.where(on_cap, disc_leave, slab_leave), half, tolerance)
+    surface_a, normal, gap = jax.vmap(ball)(jnp.stack([s0, s1]))
+    return _two_slots(surface_a, normal, gap, margin, s0, s1, overlaps, capsule.radius)
+
+
+def capsule_cylinder_separation(
+    capsule: Capsule,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    cylinder: Cylinder,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+) -> Float[Array, ""]:
+    """Slot 0's gap of :func:`capsule_cylinder` (m) without its Newton step and second slot,
+    for the time-of-impact search (as :func:`capsule_box_separation` for a box): the signed
+    distance, zero exactly when they touch, with the point held in its derivative."""
+    return _gap_at_closest_point(capsule, position_a, orientation_a, position_b, orientation_b,
+                                 lambda c, p, axes: ball_cylinder_contact(c, capsule.radius, p, axes, cylinder.radius,
+                                                                          cylinder.half_length)[2])
+
+
+def _gap_at_closest_point(capsule, position_a, orientation_a, position_b, orientation_b, gap_of_ball):
+    """``gap_of_ball(centre, position_b, axes_b)`` at the capsule's segment point where it is
+    smallest (golden-section search, no derivative through the point)."""
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     position_a, orientation_a, position_b, orientation_b = geo.as_float(
         dtype, position_a, orientation_a, position_b, orientation_b)
-    axis = geo.body_axes(orientation_a)[2]
-    axes_b, half_box = geo.body_axes(orientation_b), literal_array(box.half_extents, dtype)
+    axis, axes_b = geo.body_axes(orientation_a)[2], geo.body_axes(orientation_b)
 
     def gap(s):
-        return ball_box_contact(position_a + s * axis, capsule.radius, position_b, axes_b, half_box)[2]
+        return gap_of_ball(position_a + s * axis, position_b, axes_b)
 
     return gap(_closest_point(lambda s: jax.lax.stop_gradient(gap(s)), capsule.half_length, dtype))
+
+
+def _overlap_slots(ball, distance, s_search, enter, leave, half, tolerance):
+    """The two slots' segment parameters ``(s0, s1)`` and whether the overlap is non-empty.
+
+    ``enter`` and ``leave`` bound the part of the segment that lies over slot 0's face
+    (before clipping to ``[-half, half]``); ``ball(s)[2]`` is the ball's gap at ``s`` and
+    ``distance`` the same without derivative. Slot 0 is an end of the overlap unless the
+    search's point is closer by more than ``tolerance`` (so a capsule lying on a face gets
+    the ends of its contact line); slot 1 is the overlap's other end."""
+    lo, hi = jnp.maximum(-half, enter), jnp.minimum(half, leave)
+    overlaps = lo <= hi
+    lo, hi = jnp.where(overlaps, lo, s_search), jnp.where(overlaps, hi, s_search)
+    s_ends = jnp.stack([lo, hi])
+    end_gap = jax.vmap(lambda s: ball(s)[2])(s_ends)
+    best_end = jnp.argmin(end_gap)
+    use_search = distance(s_search) < jax.lax.stop_gradient(end_gap[best_end]) - tolerance
+    s0 = jnp.where(use_search, s_search, s_ends[best_end])
+    s1 = jnp.where(jnp.abs(hi - s0) >= jnp.abs(lo - s0), hi, lo)
+    return s0, s1, overlaps
+
+
+def _two_slots(surface_a, normal, gap, margin, s0, s1, overlaps, radius):
+    """The :class:`Contact` of slots at ``s0`` and ``s1`` (see :func:`_overlap_slots`); slot 1
+    only where the overlap is non-empty and ``s1`` is distinct from ``s0``."""
+    distinct = overlaps & (jnp.abs(s1 - s0) > _DISTINCT_FRACTION * radius)
+    return contact_from_surface_point(surface_a, normal, gap, margin, valid=jnp.stack([jnp.ones((), bool), distinct]))
 
 
 def _closest_point(distance, half, dtype):

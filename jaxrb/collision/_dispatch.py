@@ -15,7 +15,7 @@ from jaxtyping import ArrayLike, Float
 
 from ..shapes import Box, Capsule, Cylinder, Plane, Shape, Sphere
 from ._box import box_box
-from ._capsule import capsule_box, capsule_capsule
+from ._capsule import capsule_box, capsule_capsule, capsule_cylinder
 from ._contact import Contact
 from ._geometry import check_unit_quaternion
 from ._plane import box_plane, capsule_plane, cylinder_plane, sphere_plane
@@ -46,6 +46,7 @@ _PAIRS: dict[tuple[type, type], tuple[Callable[..., Contact], int]] = {
     (Sphere, Cylinder): (sphere_cylinder, 1),
     (Capsule, Capsule): (capsule_capsule, 2),
     (Capsule, Box): (capsule_box, 2),
+    (Capsule, Cylinder): (capsule_cylinder, 2),
     (Box, Box): (box_box, 4),
 }
 

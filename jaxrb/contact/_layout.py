@@ -23,9 +23,9 @@ from .. import spatial
 from .._indexing import literal_array, take_rows
 from ..collision import Contact, collide, concatenate_contacts, max_contacts
 from ..collision._box import box_box_separation
-from ..collision._capsule import capsule_box_separation
+from ..collision._capsule import capsule_box_separation, capsule_cylinder_separation
 from ..scene import GROUND, Scene
-from ..shapes import Box, Capsule, Sphere
+from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import State
 
 __all__ = ["Layout", "build_layout", "detect", "pair_separations", "slot_values"]
@@ -248,8 +248,9 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
     its roots along a motion are the instants of contact. It is the pair's smallest active
     gap (``margin`` when no slot is within it), except for box-box pairs, which use the
     separating axes alone (:func:`jaxrb.collision._box.box_box_separation`; a lower bound
-    of the distance when apart), and capsule-box pairs, the gap at the segment's closest
-    point alone (:func:`jaxrb.collision._capsule.capsule_box_separation`): the root search
+    of the distance when apart), and capsule-box and capsule-cylinder pairs, the gap at the
+    segment's closest point alone (:func:`jaxrb.collision._capsule.capsule_box_separation`,
+    :func:`~jaxrb.collision._capsule.capsule_cylinder_separation`): the root search
     evaluates this many times, and the clipped box-box manifold and capsule-box's second
     slot, its refined point and its separating axes are the most expensive narrow phases
     to run and to compile.
@@ -262,12 +263,13 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
         if isinstance(g.shape_a, Box) and isinstance(g.shape_b, Box):
             sep = jax.vmap(lambda *x, g=g: box_box_separation(g.shape_a, x[0], x[1], g.shape_b, x[2], x[3]))(
                 pa, qa, pb, qb)
-        elif {type(g.shape_a), type(g.shape_b)} == {Capsule, Box}:
+        elif {type(g.shape_a), type(g.shape_b)} in ({Capsule, Box}, {Capsule, Cylinder}):
             capsule_first = isinstance(g.shape_a, Capsule)
-            capsule, box = (g.shape_a, g.shape_b) if capsule_first else (g.shape_b, g.shape_a)
-            cap_poses, box_poses = ((pa, qa), (pb, qb)) if capsule_first else ((pb, qb), (pa, qa))
-            sep = jax.vmap(lambda *x, c=capsule, b=box: capsule_box_separation(c, x[0], x[1], b, x[2], x[3]))(
-                *cap_poses, *box_poses)
+            capsule, other = (g.shape_a, g.shape_b) if capsule_first else (g.shape_b, g.shape_a)
+            cap_poses, other_poses = ((pa, qa), (pb, qb)) if capsule_first else ((pb, qb), (pa, qa))
+            separation = capsule_box_separation if isinstance(other, Box) else capsule_cylinder_separation
+            sep = jax.vmap(lambda *x, c=capsule, o=other, f=separation: f(c, x[0], x[1], o, x[2], x[3]))(
+                *cap_poses, *other_poses)
         else:
             contact = _group_contacts(g, pa, qa, pb, qb, margin)
             sep = jnp.min(jnp.where(contact.active, contact.gap, margin), axis=-1)
