@@ -970,6 +970,43 @@ def test_a_cylinder_stands_bounces_on_its_base_and_rights_itself():
     assert float(axis[2]) > 1 - 1e-6
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
+def test_a_can_slides_to_rest_upright_at_any_turn_about_its_axis(dtype):
+    """A standing can (r = 0.1 m, centre of mass h_c = 0.15 m up) launched at 3 m/s on
+    its base, mu = 0.45, dt = 1 ms, turned about its axis by 0, 22.5, 45 and 60 degrees.
+    The friction at its base tips it forward with a moment mu m g h_c, which its weight
+    balances through the ground's pressure moving forward by mu h_c = 0.0675 m; a real
+    can slides upright while that is under r; these four-point squares of rim points reach
+    r / sqrt(2) = 0.0707 m. Each stays upright (tilt under 1e-7 rad, measured 4.4e-9;
+    1e-6 in float32, measured 3e-8), stops after v0^2 / (2 mu g) = 1.01937 m within v0 h
+    (measured 4e-7; 2.4e-5 in float32), and is at rest at 1 s (under 1e-5 m/s and 1e-4
+    rad/s; measured 1.9e-6 and 1.5e-5 in float32). On the tripod of rim points used
+    before, whose edges are r/2 from the axis, a can leaned by up to 1.2e-3 rad."""
+    mu, v0, dt = 0.45, 3.0, 1e-3
+    scene = rb.Scene([rb.Body("can", shape=rb.Cylinder(0.1, 0.15), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(friction=mu, restitution=0.0, dtype=dtype)
+    step = rb.make_step(scene, SPLIT, dt)
+
+    def slide(turn):
+        upright = rb.spatial.quat_from_axis_angle(jnp.array([0.0, 0.0, 1.0], dtype), turn)
+        state = scene.state(params, position=(0.0, 0.0, 0.15), velocity=(v0, 0.0, 0.0), orientation=upright,
+                            dtype=dtype)
+        final, traj = rb.rollout(step, params, state, 1000, save_every=10)
+        turned_back = jax.vmap(rb.spatial.quat_multiply, in_axes=(0, None))(
+            traj.orientation[:, 0], rb.spatial.quat_conjugate(upright))
+        return final, traj, 2 * jnp.linalg.norm(turned_back[:, 1:3], axis=1)
+
+    final, traj, tilt = jax.jit(jax.vmap(slide))(jnp.radians(jnp.array([0.0, 22.5, 45.0, 60.0], dtype)))
+    single = dtype == jnp.float32
+    assert final.position.dtype == dtype
+    assert np.max(np.asarray(tilt)) <= (1e-6 if single else 1e-7)
+    np.testing.assert_allclose(np.asarray(final.position[:, 0, 0], float), v0**2 / (2 * mu * G), atol=v0 * dt)
+    np.testing.assert_allclose(np.asarray(final.position[:, 0, 1:], float), [[0.0, 0.15]] * 4, atol=1e-5)
+    spin = jax.vmap(rb.angular_velocity, in_axes=(None, 0))(params, final)
+    assert np.max(np.abs(np.asarray(final.velocity[:, 0, :2]))) <= 1e-5
+    assert np.max(np.abs(np.asarray(spin))) <= 1e-4
+
+
 def test_a_ball_rests_off_centre_on_a_can_on_the_ground():
     """A 0.5 kg ball (r = 5 cm) on the top cap of a standing 1 kg cylinder, 3.6 cm off its
     axis: the can stands on its base's contact points and the ball on its cap for 2 s.

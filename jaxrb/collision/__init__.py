@@ -12,8 +12,9 @@ pair               K    slots
 sphere-plane       1    the sphere's lowest point
 box-plane          4    the four deepest corners
 capsule-plane      2    the two end spheres
-cylinder-plane     4    the four deepest of: each rim's deepest point, and three
-                        rim points per cap fixed in the body (to stand on a cap)
+cylinder-plane     5    the five deepest of: each rim's deepest point, and four
+                        rim points per cap fixed in the body, a square (to stand
+                        and slide upright on a cap)
 sphere-sphere      1    along the line of centres (coincident: world +z)
 sphere-box         1    closest box point, or nearest face from inside
 sphere-capsule     1    closest segment point (on the segment: capsule's body x)

@@ -39,7 +39,7 @@ _PAIRS: dict[tuple[type, type], tuple[Callable[..., Contact], int]] = {
     (Sphere, Plane): (_with_plane(sphere_plane), 1),
     (Box, Plane): (_with_plane(box_plane), 4),
     (Capsule, Plane): (_with_plane(capsule_plane), 2),
-    (Cylinder, Plane): (_with_plane(cylinder_plane), 4),
+    (Cylinder, Plane): (_with_plane(cylinder_plane), 5),
     (Sphere, Sphere): (sphere_sphere, 1),
     (Sphere, Box): (sphere_box, 1),
     (Sphere, Capsule): (sphere_capsule, 1),

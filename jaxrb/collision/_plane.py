@@ -133,8 +133,13 @@ def capsule_plane(
 #: at most ``r TILT_RAMP / 4`` above the rim's lowest.
 TILT_RAMP = 1e-3
 
-#: Body angles (rad) of the three rim points per cap that hold a cylinder standing on it.
-_TRIPOD = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)
+#: Body angles (rad) of the four rim points per cap that hold a cylinder standing on it:
+#: a square, whose edges are ``r / sqrt(2)`` from the axis. A can whose friction tips it
+#: forward while it slides (moment ``mu m g h_c`` about the base's centre) is held upright
+#: by them while ``mu h_c < r / sqrt(2)`` at any turn about its axis; a real can's disc holds
+#: it while ``mu h_c < r``. Three points (a triangle, edges at ``r / 2``) had let a can with
+#: a rim point trailing lean at half that friction.
+_SQUARE = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
 
 
 def cylinder_plane(
@@ -144,7 +149,7 @@ def cylinder_plane(
     plane: Plane,
     margin: float = 0.0,
 ) -> Contact:
-    """Cylinder (A) on the ground plane (B): ``K = 4``, the four deepest of eight rim points.
+    """Cylinder (A) on the ground plane (B): ``K = 5``, the five deepest of ten rim points.
 
     The candidates, for each cap ``e = c +- h a`` (``a`` the body z axis):
 
@@ -152,18 +157,20 @@ def cylinder_plane(
       (``n`` projected onto the cap's plane): the cylinder's lowest point is always one of
       the two, so the smallest gap is the exact signed distance (below a tilt of
       :data:`TILT_RAMP`, ``u = w / TILT_RAMP``: see there);
-    * three rim points fixed in the body, 120 degrees apart: a cylinder standing on a cap
-      touches along its whole rim and needs three points that enclose its centre to stand.
-      A fixed point is left out where it lies within 0.9 r of the deepest point (closer
-      than about 54 degrees along the rim): near the contact it would add a second
-      contact point that a rolling rim brings down onto the ground, an impact every third
-      of a turn.
+    * four rim points fixed in the body, 90 degrees apart (:data:`_SQUARE`): a cylinder
+      standing on a cap touches along its whole rim and needs points that enclose its
+      centre, reaching far towards the rim, to stand and to slide upright. A fixed point is
+      left out where it lies within 0.9 r of the deepest point (closer than about 54
+      degrees along the rim): near the contact it would add a second contact point that a
+      rolling rim brings down onto the ground, an impact every quarter of a turn.
 
-    The four lowest candidates are the slots (:func:`_four_deepest`). Standing on a cap:
-    the cap's deepest point (at its centre, within the ramp) and its three fixed points;
-    lying on the side: the two rims' deepest points, the line they span; tilted onto a
-    rim: its deepest point and the fixed points near the ground. All are on the
-    cylinder's surface, so every gap is a point's distance to the plane.
+    The five lowest candidates are the slots. Standing on a cap: the cap's deepest point
+    (at its centre, within the ramp) and its four fixed points; lying on the side: the two
+    rims' deepest points, the line they span; tilted onto a rim: its deepest point and the
+    fixed points near the ground. All are on the cylinder's surface, so every gap is a
+    point's distance to the plane. Five slots, not four: with four, a standing can would
+    have to drop its deepest point (so the smallest gap would jump as it tilts past the
+    ramp) or one fixed point (a triangle again).
     """
     position, orientation = geo.pose("cylinder_plane", position, orientation)
     geo.check_margin(margin)
@@ -173,20 +180,20 @@ def cylinder_plane(
     x_axis, y_axis, axis = geo.body_axes(orientation)
     w = n - spatial.dot(n, axis) * axis
     u = w / jnp.maximum(spatial.safe_norm(w), TILT_RAMP)
-    angles = literal_array(_TRIPOD, dtype)
-    fixed = jnp.cos(angles)[:, None] * x_axis[None, :] + jnp.sin(angles)[:, None] * y_axis[None, :]  # (3, 3)
+    angles = literal_array(_SQUARE, dtype)
+    fixed = jnp.cos(angles)[:, None] * x_axis[None, :] + jnp.sin(angles)[:, None] * y_axis[None, :]  # (4, 3)
     # Per cap: the deepest point, then the fixed points; valid unless near the deepest.
-    rim = jnp.concatenate([-u[None, :], fixed])  # (4, 3), unit (or shorter, within the ramp)
+    rim = jnp.concatenate([-u[None, :], fixed])  # (5, 3), unit (or shorter, within the ramp)
     valid = jnp.concatenate([jnp.ones(1, bool), spatial.safe_norm(fixed + u[None, :]) >= 0.9])
     caps = literal_array([[1.0], [-1.0]], dtype) * (cylinder.half_length * axis[None, :])  # (2, 3)
-    points = (position[None, None, :] + caps[:, None, :] + cylinder.radius * rim[None, :, :]).reshape(8, 3)
+    points = (position[None, None, :] + caps[:, None, :] + cylinder.radius * rim[None, :, :]).reshape(10, 3)
     height = spatial.dot(points, n[None, :]) - plane.offset
-    # The four lowest by lax.top_k (stable: ties go to the lower index), in candidate
+    # The five lowest by lax.top_k (stable: ties go to the lower index), in candidate
     # order, not by _four_deepest's ranks: compiled with these heights in one fusion, the
     # ranks dropped a base point of a standing cylinder for a top-cap point in 2% of
     # poses tilted by 1e-13 to 1e-3 (op by op, never), and the can stood on three points.
     # The cause inside XLA:CPU is not known. box_plane keeps the ranks: no pose of its
     # test differs, and top_k made the 5-box stack's first 200 steps 14% slower.
     masked = jnp.where(jnp.tile(valid, 2), height, jnp.inf)
-    deepest = jnp.sort(jax.lax.top_k(-masked, 4)[1])
-    return contact_from_surface_point(points[deepest], jnp.broadcast_to(n, (4, 3)), height[deepest], margin)
+    deepest = jnp.sort(jax.lax.top_k(-masked, 5)[1])
+    return contact_from_surface_point(points[deepest], jnp.broadcast_to(n, (5, 3)), height[deepest], margin)
