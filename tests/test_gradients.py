@@ -106,29 +106,40 @@ def test_friction_gradients_across_contact_match_finite_differences():
 
 @pytest.mark.slow
 def test_rolling_cylinder_gradients_match_finite_differences_and_the_closed_form():
-    """A can (r = 0.1 m) lying on the ground, launched at v0 = 2 m/s without spin, mu = 0.3:
-    it slides until t_r = v0 / (3 mu g) = 0.227 s, then rolls at 2 v0 / 3. d(x)/d(mu, v0)
-    on its two rim slots, against central differences (1e-4 relative, measured 2e-8) and
-    the physics: sliding (t = 0.1 s), x = v0 t - mu g t^2 / 2; rolling (t = 1 s),
-    x = 2 v0 t / 3 + v0^2 / (18 mu g), within 1% (measured 0.4%: the transition's step)."""
+    """A can (r = 0.1 m) launched at v0 = 2 m/s without spin, mu = 0.3, from two starts
+    that share one compiled program. Lying on the ground, on its two rim slots: it slides
+    until t_r = v0 / (3 mu g) = 0.227 s, then rolls at 2 v0 / 3. Standing on its base
+    (h_c = 0.15 m; mu h_c is under the square stance's r / sqrt(2)), on its five slots: it
+    slides upright until v0 / (mu g) = 0.680 s. d(x)/d(mu, v0) against central
+    differences (1e-4 relative, measured 2e-8) and the physics: sliding (t = 0.1 s),
+    x = v0 t - mu g t^2 / 2 (1e-6); at t = 1 s, rolling, x = 2 v0 t / 3 + v0^2 / (18 mu g),
+    and at rest, x = v0^2 / (2 mu g), within 1% (measured 0.4% and 0.1%: the step in
+    which the motion changes)."""
     scene = rb.Scene([rb.Body("can", shape=rb.Cylinder(0.1, 0.15), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
     lying = rb.spatial.quat_from_axis_angle(jnp.array([1.0, 0.0, 0.0]), np.pi / 2)  # axis along y
+    starts = ((lying, jnp.asarray(0.1)), (jnp.array([1.0, 0.0, 0.0, 0.0]), jnp.asarray(0.15)))
 
-    def roll(x):
+    def slide(x, orientation, height):
         params = scene.params(friction=0.3, restitution=0.0, dtype=jnp.float64).replace(friction=x[:1])
-        state = scene.state(params, position=(0.0, 0.0, 0.1), orientation=lying,
+        state = scene.state(params, position=jnp.stack([0.0, 0.0, height]), orientation=orientation,
                             velocity=jnp.stack([x[1], 0.0, 0.0]))
         end, traj = rb.rollout(step, params, state, 1000)
-        return jnp.stack([end.position[0, 0], traj.position[99, 0, 0]])  # rolling (t = 1 s), sliding (0.1 s)
+        return jnp.stack([end.position[0, 0], traj.position[99, 0, 0]])  # at t = 1 s, and sliding (0.1 s)
 
-    x0 = jnp.asarray([0.3, 2.0])
-    jac = np.asarray(jax.jit(jax.jacfwd(roll))(x0))
-    fd = _central_differences(roll, x0, 1e-6)
+    # The start is an argument, not a constant, so both starts run the same two programs.
+    x0, eps = np.array([0.3, 2.0]), 1e-6
+    derivative = jax.jit(jax.jacfwd(slide))
+    shifted = jax.jit(jax.vmap(slide, in_axes=(0, None, None)))
+    shifts = jnp.asarray(x0[None] + np.concatenate([np.eye(2), -np.eye(2)]) * eps)
+    jac = np.concatenate([np.asarray(derivative(jnp.asarray(x0), *start)) for start in starts])
+    values = [np.asarray(shifted(shifts, *start)) for start in starts]
+    fd = np.concatenate([((v[:2] - v[2:]) / (2 * eps)).T for v in values])
     np.testing.assert_allclose(jac, fd, rtol=1e-4)
     mu, v0, t = 0.3, 2.0, 0.1
-    np.testing.assert_allclose(jac[1], [-G * t**2 / 2, t], rtol=1e-6)
+    np.testing.assert_allclose(jac[[1, 3]], [[-G * t**2 / 2, t]] * 2, rtol=1e-6)
     np.testing.assert_allclose(jac[0], [-v0**2 / (18 * mu**2 * G), 2.0 / 3.0 + v0 / (9 * mu * G)], rtol=1e-2)
+    np.testing.assert_allclose(jac[2], [-v0**2 / (2 * mu**2 * G), v0 / (mu * G)], rtol=1e-2)
 
 
 @pytest.mark.slow
