@@ -107,7 +107,7 @@ def test_friction_gradients_across_contact_match_finite_differences():
 @pytest.mark.slow
 def test_rolling_cylinder_gradients_match_finite_differences_and_the_closed_form():
     """A can (r = 0.1 m) launched at v0 = 2 m/s without spin, mu = 0.3, from two starts
-    that share one compiled program. Lying on the ground, on its two rim slots: it slides
+    that share the compiled programs (derivative, differences). Lying on the ground, on its two rim slots: it slides
     until t_r = v0 / (3 mu g) = 0.227 s, then rolls at 2 v0 / 3. Standing on its base
     (h_c = 0.15 m; mu h_c is under the square stance's r / sqrt(2)), on its five slots: it
     slides upright until v0 / (mu g) = 0.680 s. d(x)/d(mu, v0) against central
