@@ -18,12 +18,24 @@ import jaxrb as rb
 G = 9.81
 
 
+def _differences_of(fn):
+    """``at(x, eps, *args)``: central differences of ``fn(x, *args) -> (m,)`` in ``x: (k,)``,
+    shape ``(m, k)``, all perturbations in one vmapped call. One compiled program serves
+    every call of ``at`` (``args``, unbatched, are its arguments, not constants)."""
+    shifted = jax.jit(lambda xs, args: jax.vmap(lambda x: fn(x, *args))(xs))
+
+    def at(x, eps, *args):
+        x = np.asarray(x, float)
+        shifts = np.concatenate([np.eye(x.size), -np.eye(x.size)]) * eps
+        values = np.asarray(shifted(jnp.asarray(x[None] + shifts), args))
+        return ((values[: x.size] - values[x.size:]) / (2 * eps)).T
+
+    return at
+
+
 def _central_differences(fn, x, eps):
-    """Central differences of ``fn: (k,) -> (m,)`` at ``x``, all perturbations in one vmapped call."""
-    x = np.asarray(x, float)
-    shifts = np.concatenate([np.eye(x.size), -np.eye(x.size)]) * eps
-    values = np.asarray(jax.jit(jax.vmap(fn))(jnp.asarray(x[None] + shifts)))
-    return ((values[: x.size] - values[x.size:]) / (2 * eps)).T  # (m, k)
+    """Central differences of ``fn: (k,) -> (m,)`` at ``x``, shape ``(m, k)``."""
+    return _differences_of(fn)(x, eps)
 
 
 def test_apex_heights_have_the_analytic_derivative_in_restitution():
@@ -128,13 +140,10 @@ def test_rolling_cylinder_gradients_match_finite_differences_and_the_closed_form
         return jnp.stack([end.position[0, 0], traj.position[99, 0, 0]])  # at t = 1 s, and sliding (0.1 s)
 
     # The start is an argument, not a constant, so both starts run the same two programs.
-    x0, eps = np.array([0.3, 2.0]), 1e-6
-    derivative = jax.jit(jax.jacfwd(slide))
-    shifted = jax.jit(jax.vmap(slide, in_axes=(0, None, None)))
-    shifts = jnp.asarray(x0[None] + np.concatenate([np.eye(2), -np.eye(2)]) * eps)
+    x0 = np.array([0.3, 2.0])
+    derivative, differences = jax.jit(jax.jacfwd(slide)), _differences_of(slide)
     jac = np.concatenate([np.asarray(derivative(jnp.asarray(x0), *start)) for start in starts])
-    values = [np.asarray(shifted(shifts, *start)) for start in starts]
-    fd = np.concatenate([((v[:2] - v[2:]) / (2 * eps)).T for v in values])
+    fd = np.concatenate([differences(x0, 1e-6, *start) for start in starts])
     np.testing.assert_allclose(jac, fd, rtol=1e-4)
     mu, v0, t = 0.3, 2.0, 0.1
     np.testing.assert_allclose(jac[[1, 3]], [[-G * t**2 / 2, t]] * 2, rtol=1e-6)
