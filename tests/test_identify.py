@@ -172,6 +172,69 @@ def test_a_guess_on_the_boundary_is_refused():
         FreeParameters(scene, flat, "inertia")
 
 
+def test_guesses_must_be_finite_symmetric_and_floating():
+    """Params.replace does not check values: an infinite mass or a NaN inertia had been
+    taken as a guess (unconstrained coordinates inf or NaN), an asymmetric inertia had been
+    replaced by its symmetric part without a word, and an integer leaf of extra had failed
+    inside optax (reduce_on_plateau) or jacfwd."""
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=0.5, dtype=jnp.float64)
+    bad = [(params.replace(mass=jnp.asarray([np.inf])), "mass", "free mass is not finite"),
+           (params.replace(inertia=jnp.full((1, 3, 3), np.nan)), "inertia", "free inertia is not finite"),
+           (params.replace(restitution=jnp.asarray([np.nan])), "restitution", "free restitution is not finite"),
+           (params.replace(inertia=jnp.asarray([[[1.0, 0.3, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])), "inertia",
+            "not symmetric"),
+           (params.replace(extra={"k": jnp.asarray(3)}), "extra", r"extra\['k'\] has dtype int"),
+           (params.replace(extra={"k": jnp.asarray([1.0, np.inf])}), "extra", "free extra is not finite")]
+    for guess, free, message in bad:
+        for for_fit in (True, False):
+            with pytest.raises(ValueError, match=message):
+                FreeParameters(scene, guess, free, for_fit=for_fit)
+    # Round-off asymmetry (an inertia rotated into a frame) is a symmetric inertia.
+    rotated = params.inertia.at[0, 0, 1].add(1e-12)
+    assert FreeParameters(scene, params.replace(inertia=rotated), "inertia").labels
+
+
+def test_identifiability_at_the_edge_of_a_fits_domain():
+    """The report moves the physical values themselves, so it is defined where a fit
+    cannot start: at e = 0 (scene.params()'s default, which it had refused as "not
+    strictly inside (0, 1) for a fit"), a friction above friction_max, a flat plate."""
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    plate = jnp.asarray([np.diag([1.0, 1.0, 2.0])])
+    for e, mu in ((0.0, 2.5), (1.0, 0.0)):
+        params = scene.params(restitution=e, friction=mu, dtype=jnp.float64).replace(inertia=plate)
+
+        def residuals(p, d):
+            return jnp.concatenate([jnp.stack([2.0 * p.restitution[0] - d, p.friction[0] - d]), p.inertia[0, 2]])
+
+        report = rb.identify.identifiability(residuals, scene, params, ["restitution", "friction", "inertia"],
+                                             data=1.0)
+        # In labels order: inertia xx yy zz xy xz yz, restitution, friction.
+        np.testing.assert_allclose(report.values, [1.0, 1.0, 2.0, 0.0, 0.0, 0.0, e, mu])
+        expected = np.zeros((5, 8))
+        expected[0, 6], expected[1, 7], expected[2, 4], expected[3, 5], expected[4, 2] = 2.0, 1.0, 1.0, 1.0, 1.0
+        np.testing.assert_allclose(report.jacobian, expected, atol=1e-12)
+        with pytest.raises(ValueError, match="for a fit"):  # a fit still cannot start there
+            FreeParameters(scene, params, ["restitution", "friction", "inertia"])
+
+
+def test_fit_options_and_a_guess_without_a_finite_loss_are_explained():
+    """A damping <= 0 or NaN had been accepted: fit_least_squares then took a step against
+    the gradient as "converged", or rejected every step to max_steps. A loss NaN at the
+    guess had reported loss inf and "the best finite iterate is returned" (there is none)."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    guess = scene.params(dtype=jnp.float64)
+    residuals = lambda p, d: jnp.stack([jnp.log(p.mass[0]) - jnp.log(d)])  # noqa: E731
+    for damping in (-1.0, 0.0, np.nan, np.inf, True, "1e-3"):
+        with pytest.raises(ValueError, match="damping must be a positive, finite number"):
+            rb.identify.fit_least_squares(residuals, scene, guess, "mass", data=50.0, damping=damping,
+                                          progress=False)
+    result = rb.identify.fit(lambda p: jnp.sqrt(p.mass[0] - 2.0), scene, guess, "mass", progress=False)
+    assert not result.converged and result.steps == 0 and np.isnan(result.loss) and len(result.loss_history) == 0
+    assert "the loss is nan at the initial guess" in result.message
+    assert float(result.params.mass[0]) == 1.0
+
+
 # ------------------------------------------------------------------ (a) bounce
 
 

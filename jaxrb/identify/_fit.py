@@ -146,10 +146,10 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _space(scene, params, free, friction_max) -> FreeParameters:
+def _space(scene, params, free, friction_max, for_fit: bool = True) -> FreeParameters:
     if isinstance(free, FreeParameters):
         return free
-    return FreeParameters(scene, params, free, friction_max=friction_max)
+    return FreeParameters(scene, params, free, friction_max=friction_max, for_fit=for_fit)
 
 
 def fit(
@@ -246,7 +246,11 @@ def fit(
         new_z, opt_state, value, gmax = update(z, opt_state)
         value, gmax = float(value), float(gmax)  # the loss at z (before this update)
         if not np.isfinite(value):
-            message = f"the loss became {value} at step {step - 1}; the best finite iterate is returned"
+            if step == 1:  # no finite iterate: the guess is returned, with its loss
+                best, step = value, 0
+                message = f"the loss is {value} at the initial guess; it is returned"
+            else:
+                message = f"the loss became {value} at step {step - 1}; the best finite iterate is returned"
             break
         history.append(value)
         if keep_iterates:
@@ -314,6 +318,10 @@ def fit_least_squares(
         A :class:`FitResult`; ``loss`` is ``sum(residuals**2) / 2``.
     """
     max_steps = positive_count("max_steps", max_steps)  # 0 returned loss inf
+    if isinstance(damping, bool) or not (isinstance(damping, (int, float, np.floating)) and 0 < damping < np.inf):
+        # lam <= 0 or NaN: rejected steps never damped, or a step against the gradient taken as converged.
+        raise ValueError(f"damping must be a positive, finite number (the initial lam, relative to the largest "
+                         f"entry of J^T J), got {damping!r}.")
     space = _space(scene, params, free, friction_max)
     vector = _objective(residuals, data, batched, jnp.ravel)
     flat, unravel = jax.flatten_util.ravel_pytree(space.unconstrained())

@@ -136,12 +136,14 @@ def identifiability(
             ``100 sqrt(eps)`` of the dtype: 1.5e-6 in float64, 0.03 in float32 (use
             float64 for this analysis when you can). Singular values below the report's
             ``floor`` (rounding level, see :class:`Identifiability`) are reported too.
-        friction_max: as given to the fit (a free friction must lie below it).
+        friction_max: as given to the fit. ``params`` need not be a fit's start: any
+            finite values will do (``e = 0``, a flat plate's inertia, a friction above
+            ``friction_max``), as the report moves the physical values themselves.
 
     Returns:
         An :class:`Identifiability` report (``print`` it).
     """
-    space = _space(scene, params, free, friction_max)
+    space = _space(scene, params, free, friction_max, for_fit=False)  # any finite point: no map is used
     vector = _objective(residuals, data, batched, jnp.ravel)
     theta = space.to_vector(params)
 

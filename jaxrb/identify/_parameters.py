@@ -37,6 +37,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
+from .._static import static_switch
 from ..forces import AngularDamping, LinearDamping
 from ..scene import Scene
 from ..state import Params
@@ -111,6 +112,15 @@ class FreeParameters:
             (``restitution``, ``friction``), or a boolean mask of the field's leading axis.
             ``gravity`` and ``extra`` are all-or-nothing.
         friction_max: upper bound of a free friction coefficient (the scaled sigmoid's scale).
+        for_fit: ``params`` is a fit's start, so every free value must lie strictly inside
+            its field's domain (a boundary, e.g. ``e = 0``, has no unconstrained
+            coordinate). ``False`` for a point of analysis that uses no map
+            (:func:`jaxrb.identify.identifiability` at ``e = 0`` or at a flat plate's
+            inertia): free values must then only be finite.
+
+    Every free value must be finite, and a free inertia symmetric (its six entries are
+    what a fit or a report moves; an asymmetric one would be replaced by its symmetric
+    part without a word).
 
     Attributes:
         masks: ``{field: bool array}`` for the free fields (``None`` for ``extra``).
@@ -122,6 +132,7 @@ class FreeParameters:
     params: Params
     free: object
     friction_max: float = 2.0
+    for_fit: bool = True
     masks: dict = dataclasses.field(init=False)
     labels: tuple = dataclasses.field(init=False)
 
@@ -129,6 +140,7 @@ class FreeParameters:
         if not isinstance(self.params, Params):
             raise ValueError(f"params must be an rb.Params (scene.params()), got {type(self.params).__name__}.")
         self.scene.check_shapes(self.params)  # params of another scene
+        object.__setattr__(self, "for_fit", static_switch("for_fit", self.for_fit))
         if isinstance(self.friction_max, bool) or not (isinstance(self.friction_max, (int, float, np.floating))
                                                         and 0 < self.friction_max < np.inf):
             raise ValueError(f"friction_max must be a positive, finite number (the free friction's upper bound; "
@@ -164,6 +176,10 @@ class FreeParameters:
                 raise ValueError("free['extra'] must be True: the user pytree is fitted as a whole.")
             if self.params.extra is None:
                 raise ValueError("free includes 'extra' but params.extra is None.")
+            for path, leaf in jax.tree_util.tree_leaves_with_path(self.params.extra):
+                if not jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+                    raise ValueError(f"params.extra{jax.tree_util.keystr(path)} has dtype {jnp.result_type(leaf)}: "
+                                     f"a fitted value must be floating point (e.g. 3.0, not 3).")
             return None
         unused = {"gravity": scene.gravity is None and "the scene was built with gravity=None",
                   "linear_damping": LinearDamping not in declared and "the scene has no rb.LinearDamping()",
@@ -218,8 +234,23 @@ class FreeParameters:
         raise ValueError(f"free[{field!r}]: {pair} is not a contact pair of the scene; its pairs are {pairs}.")
 
     def _check_inside(self):
-        """Free entries must start strictly inside their domain (a boundary has no ``z``)."""
+        """Free entries must be finite, a free inertia symmetric, and, for a fit, every free
+        value strictly inside its domain (a boundary has no ``z``)."""
         p = self.params
+        for field, mask in self.masks.items():
+            values = jax.tree.leaves(p.extra) if field == "extra" else [np.asarray(getattr(p, field))[mask]]
+            if not all(np.all(np.isfinite(np.asarray(v, float))) for v in values):
+                raise ValueError(f"The free {field} is not finite: {values if field == 'extra' else values[0]}. "
+                                 f"Give a finite {'guess' if self.for_fit else 'point of analysis'}.")
+        if "inertia" in self.masks:
+            inertia = np.asarray(p.inertia, float)[self.masks["inertia"]]
+            asymmetry = np.max(np.abs(inertia - np.swapaxes(inertia, -1, -2)), initial=0.0)
+            if asymmetry > 1e-6 * np.max(np.abs(inertia), initial=0.0):
+                raise ValueError(f"A free inertia is not symmetric (|I - I^T| up to {asymmetry:.3g}): an inertia "
+                                 f"tensor is, and its six entries are what is fitted. Give (I + I^T) / 2 if "
+                                 f"that is what you meant.")
+        if not self.for_fit:
+            return
         checks = {
             "mass": (p.mass, lambda x: x > 0, "positive"),
             "linear_damping": (p.linear_damping, lambda x: x > 0, "positive (start from a small value, not 0)"),
