@@ -104,6 +104,16 @@ def _check_shape(name: str, value, expected: tuple[int, ...], dtype) -> Array:
     return value.astype(dtype)
 
 
+def _pair(model: str, what: str, out):
+    """``out`` as two values, or a ``ValueError``: an array returned alone (the torque
+    forgotten) had been unpacked along its body axis, and the error then named a shape
+    the function did not return."""
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        got = f"an array of shape {jnp.shape(out)}" if hasattr(out, "shape") else repr(type(out).__name__)
+        raise ValueError(f"{model} function must return a pair {what}, got {got}.")
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class PointForces(ForceModel):
     """Forces applied at world points, from a user function.
@@ -116,7 +126,7 @@ class PointForces(ForceModel):
     fn: Callable
 
     def wrench(self, params: Params, state: State) -> Wrench:
-        points, forces = self.fn(state.time, params, state)
+        points, forces = _pair("PointForces", "(points, forces)", self.fn(state.time, params, state))
         points = jnp.asarray(points)
         n = state.position.shape[0]
         if points.ndim != 3 or points.shape[0] != n or points.shape[2] != 3:
@@ -140,7 +150,7 @@ class ExternalWrench(ForceModel):
     fn: Callable
 
     def wrench(self, params: Params, state: State) -> Wrench:
-        force, torque = self.fn(state.time, params, state)
+        force, torque = _pair("ExternalWrench", "(F, tau)", self.fn(state.time, params, state))
         n = state.position.shape[0]
         dtype = state.position.dtype
         force = _check_shape("ExternalWrench function (force)", force, (n, 3), dtype)

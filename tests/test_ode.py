@@ -369,6 +369,9 @@ def test_max_steps_reported_without_throw():
         ({"ts": [-0.5, 0.5]}, "before the state's time"),
         ({"ts": [[0.5]]}, "1-D"),
         ({"max_steps": 0}, "max_steps"),
+        ({"dt0": 0.0}, "dt0 must be a positive, finite initial step"),  # had run to "max_steps reached"
+        ({"dt0": -1e-3}, "dt0 must be a positive"),  # had failed in diffrax with a tracer in its message
+        ({"dt0": float("nan")}, "dt0 must be a positive"),
     ],
 )
 def test_bad_input_raises(kwargs, match):
@@ -394,11 +397,16 @@ def test_bad_objects_raise():
         ode.solve(scene, params, carried, 1.0)
 
 
-def test_traced_bad_times_raise_at_run_time():
+def test_traced_bad_times_and_tolerances_raise_at_run_time():
+    """A traced rtol of -1 had run, and ended 1.26 off in the quaternion, without a word."""
     scene, params, state = free_top()
-    final = jax.jit(lambda s, t1: ode.solve(scene, params, s, t1).final)
+    final = jax.jit(lambda s, t1, rtol=1e-8: ode.solve(scene, params, s, t1, rtol=rtol).final)
     with pytest.raises(Exception, match="t1 > state.time"):
         jax.block_until_ready(final(state.replace(time=jnp.asarray(2.0)), 1.0))
+    for rtol in (-1.0, 0.0, float("nan")):
+        with pytest.raises(Exception, match="positive, finite rtol and atol"):
+            jax.block_until_ready(final(state, 0.5, rtol))
+    np.testing.assert_array_equal(final(state, 0.5, 1e-8).position, ode.solve(scene, params, state, 0.5).final.position)
 
 
 def test_vector_field_is_the_l_form_derivative():

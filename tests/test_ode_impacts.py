@@ -8,6 +8,7 @@ threshold is plastic (``e = 0``): the ball stays on the ground.
 """
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -103,3 +104,27 @@ def test_a_scene_with_contacts_is_refused_by_the_contact_free_solve_and_bad_inpu
         rb.ode.solve_with_impacts(scene, params, state, 0.0)
     with pytest.raises(ValueError, match="rb.ContactSettings"):
         rb.ode.solve_with_impacts(scene, params, state, 1.0, contact="pgs")
+    with pytest.raises(ValueError, match="atol = 1e-16 is below what float64 resolves"):
+        rb.ode.solve_with_impacts(scene, params, state, 1.0, atol=1e-16)
+    # Traced: an end time before the start had returned the start state, no impact, no error.
+    solve = jax.jit(lambda s, t1: rb.ode.solve_with_impacts(scene, params, s, t1, max_impacts=2).final.time)
+    with pytest.raises(Exception, match="need t1 > state.time"):
+        jax.block_until_ready(solve(state.replace(time=jnp.asarray(2.0)), 1.0))
+
+
+def test_float32_impacts_with_the_default_tolerances():
+    """In float32 (JAX's default) the float64 defaults (1e-10, 1e-12) are under the dtype's
+    rounding, and the impacts' root finder failed inside a callback; the defaults are now
+    the dtype's (1e-6, 1e-6), and an atol under 4 eps is refused. The first six impact
+    times against the closed form t_k = t_1 (1 + 2 e + ... + 2 e^(k-1)): measured 1.4e-5 s."""
+    scene = ball_scene()
+    params = scene.params(restitution=0.8, dtype=jnp.float32)
+    state = scene.state(params, position=(0, 0, H + R))
+    assert state.position.dtype == jnp.float32
+    result = rb.ode.solve_with_impacts(scene, params, state, 3.5, max_impacts=6)
+    with pytest.raises(ValueError, match="below what float32 resolves"):
+        rb.ode.solve_with_impacts(scene, params, state, 1.0, atol=1e-7)
+    t1 = np.sqrt(2 * H / G)
+    expected = t1 * (1 + np.concatenate([[0.0], np.cumsum([2 * 0.8**k for k in range(1, 6)])]))
+    assert int(result.num_impacts) == 6
+    np.testing.assert_allclose(result.impact_times, expected, atol=1e-4)

@@ -205,6 +205,14 @@ def test_user_force_function_with_wrong_shape():
     step = rb.make_step(scene, rb.integrators.RK4(), 1e-3)
     with pytest.raises(ValueError, match=r"expected \(1, 3\)"):
         step(scene.params(), scene.state())
+    # One array returned where a pair is due (the torque forgotten): it had been unpacked
+    # along its body axis ("not enough values to unpack", or a shape the function did not return).
+    for forces, message in [([rb.ExternalWrench(lambda t, p, s: jnp.ones((2, 3)))], r"pair \(F, tau\), got an array "
+                                                                                    r"of shape \(2, 3\)"),
+                            ([rb.PointForces(lambda t, p, s: jnp.ones((2, 1, 3)))], r"pair \(points, forces\)")]:
+        two = scene_of(BALL, rb.Body("b", shape=rb.Sphere(0.1), mass=1.0), forces=forces)
+        with pytest.raises(ValueError, match=message):
+            rb.make_step(two, rb.integrators.RK4(), 1e-3)(two.params(), two.state())
 
 
 def test_valid_inputs_pass_and_normalise():
