@@ -366,7 +366,16 @@ def from_point_masses(
     Returns:
         The body in that same frame: ``com = x_cm``, inertia about ``x_cm``.
     """
-    return _point_masses(jnp.asarray(masses), jnp.asarray(positions))
+    masses, positions = jnp.asarray(masses), jnp.asarray(positions)
+    if masses.ndim != 1 or positions.shape != (*masses.shape, 3):
+        raise ValueError(f"from_point_masses: masses must have shape (n,) and positions (n, 3), got "
+                         f"{masses.shape} and {positions.shape}.")
+    known = None if isinstance(masses, jax.core.Tracer) else np.asarray(masses, dtype=float)
+    if known is not None and not (np.all(np.isfinite(known)) and np.all(known >= 0) and known.sum() > 0):
+        # A zero total (or masses of both signs) put the com at inf or NaN without a word.
+        raise ValueError(f"from_point_masses: masses must be finite and >= 0 with a positive total (kg), "
+                         f"got {known}.")
+    return _point_masses(masses, positions)
 
 
 # The kernels below are jitted so that eager calls (at scene build time) compile once per
@@ -450,7 +459,7 @@ def from_mesh(
     """
     _check_mass_or_density(density, mass, "from_mesh")
     if not isinstance(vertices, jax.core.Tracer) and not isinstance(faces, jax.core.Tracer):
-        shapes._check_closed_and_oriented(np.asarray(vertices, dtype=float), np.asarray(faces))
+        shapes.check_mesh(vertices, faces, "from_mesh")
     signed_volume, com, unit_inertia = _mesh_moments(jnp.asarray(vertices), jnp.asarray(faces))
     known_volume = _concrete_float(signed_volume)
     if known_volume is not None:

@@ -66,6 +66,11 @@ class Body:
                 f"Body {self.name!r}: shape must be a jaxrb shape (rb.Box, rb.Sphere, ...), "
                 f"got {type(self.shape).__name__}."
             )
+        if isinstance(self.shape, Plane):
+            # A plane's pair functions read the plane's normal and offset, never a pose: a
+            # body carrying one collided as a plane fixed through the world's origin.
+            raise ValueError(f"Body {self.name!r}: a Plane is static and has no pose, so it cannot be a body's "
+                             f"shape. Give it to the scene: rb.Scene(..., ground=rb.Plane(normal, offset)).")
         mp = self._resolve()
         mass = float(np.asarray(mp.mass))
         # Checked in its own precision (float32 round-off passes), stored symmetric in float64.
@@ -86,7 +91,16 @@ class Body:
                 raise ValueError(
                     f"{where}: give either mass_properties= or mass/density/inertia, not both."
                 )
-            return self.mass_properties
+            mp = self.mass_properties
+            if not isinstance(mp, _inertia.MassProperties):
+                raise ValueError(f"{where}: mass_properties must be an rb.MassProperties (from rb.mass_properties "
+                                 f"or rb.MassProperties(mass, com, inertia)), got {type(mp).__name__}.")
+            com = np.asarray(mp.com, dtype=float)
+            if np.shape(mp.mass) != () or com.shape != (3,) or not np.all(np.isfinite(com)):
+                # A NaN com became the shape's offset, and the body fell through the ground.
+                raise ValueError(f"{where}: mass_properties needs a scalar mass and a finite (3,) com (m), got mass "
+                                 f"of shape {np.shape(mp.mass)} and com {com!r}. (One body's: not a batch.)")
+            return mp
         if self.inertia is not None:
             if self.mass is None or self.density is not None:
                 raise ValueError(

@@ -232,21 +232,32 @@ class Mesh(Shape):
     faces: tuple[tuple[int, int, int], ...]
 
     def __post_init__(self):
-        import numpy as np
 
-        v = np.asarray(self.vertices, dtype=float)
-        f = np.asarray(self.faces)
-        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
-            raise ValueError(f"Mesh.vertices must have shape (V>=4, 3), got {v.shape}.")
-        if not np.all(np.isfinite(v)):
-            raise ValueError("Mesh.vertices contains NaN or infinite values.")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
-            raise ValueError(f"Mesh.faces must have shape (F>=4, 3), got {f.shape}.")
-        if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
-            raise ValueError(f"Mesh.faces must be integer indices in [0, {len(v)}).")
-        _check_closed_and_oriented(v, f)
+        v, f = check_mesh(self.vertices, self.faces, "Mesh")
         object.__setattr__(self, "vertices", tuple(map(tuple, v.tolist())))
         object.__setattr__(self, "faces", tuple(map(tuple, f.astype(int).tolist())))
+
+
+def check_mesh(vertices, faces, what: str):
+    """``(vertices, faces)`` as NumPy arrays, or a ``ValueError``: ``(V >= 4, 3)`` finite
+    vertices, ``(F >= 4, 3)`` integer faces indexing them (a quad face, read as its first
+    three corners, had halved a cube's volume; a face index of -1 wrapped to the last
+    vertex), and a closed, consistently oriented surface."""
+    import numpy as np
+
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
+        raise ValueError(f"{what}: vertices must have shape (V>=4, 3), got {v.shape}.")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{what}: vertices contain NaN or infinite values.")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
+        raise ValueError(f"{what}: faces must have shape (F>=4, 3), triangles, got {f.shape}. Split polygons "
+                         f"into triangles (a quad (a, b, c, d) into (a, b, c) and (a, c, d)).")
+    if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"{what}: faces must be integer indices in [0, {len(v)}).")
+    _check_closed_and_oriented(v, f)
+    return v, f
 
 
 def _check_closed_and_oriented(vertices, faces) -> None:
@@ -275,7 +286,12 @@ def _check_closed_and_oriented(vertices, faces) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class Plane(Shape):
-    """Static half-space ``{x : normal . x <= offset}``, e.g. the ground. Has no mass."""
+    """Static half-space ``{x : n . x <= offset}``, ``n = normal / |normal|``, e.g. the
+    ground. Has no mass and no pose.
+
+    ``normal`` is normalised on construction (the stored one is unit), and ``offset`` (m)
+    is the plane's signed distance from the origin along that unit normal: ``Plane((0, 0,
+    2), 1.0)`` is the plane ``z = 1``, not ``2 z = 1``."""
 
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
     offset: float = 0.0

@@ -1287,6 +1287,35 @@ def test_debug_mode_reports_a_deep_overlap_inside_jit():
         jax.block_until_ready(run(loud.prepare(scene.state(params, position=(0.0, 0.0, -0.2)))))
 
 
+def test_a_coins_overlap_limit_is_half_its_thickness():
+    """The default max_penetration is half the thinnest contact shape: for a coin (r = 0.5 m,
+    half-length 0.01 m) half its half-length, 5 mm. It had read radii and half extents
+    only (0.25 m), so the coin could sink through the ground unreported."""
+    scene = rb.Scene([rb.Body("coin", shape=rb.Cylinder(0.5, 0.01), mass=1.0)], ground=rb.Plane(), contacts="all")
+    assert rb.make_step(scene, SPLIT, 1e-3, debug=True).max_penetration == 0.005
+
+
+def test_the_seeds_impulse_refuses_half_a_body_and_bad_numbers():
+    """B's rotational term needs both inv_inertia_b and r_b: with one of them it had been
+    left out silently (3.27 instead of 2.98 here). A concrete normal must be unit and e in
+    [0, 1] (a normal (0, 0, 2) and e = 5 had been used as given)."""
+    n, r_a, r_b = np.array([0.0, 0.0, 1.0]), np.array([0.1, 0.0, -0.2]), np.array([0.0, 0.2, 0.1])
+    ia, ib = np.linalg.inv(np.diag([0.1, 0.2, 0.3])), np.linalg.inv(np.diag([0.3, 0.2, 0.1]))
+    both = rb.contact.collision_impulse(-2.0, n, 0.5, 0.5, ia, r_a, 1 / 3, ib, r_b)
+    term = lambda i, r: np.dot(np.cross(i @ np.cross(r, n), r), n)  # noqa: E731
+    assert float(both) == pytest.approx(3.0 / (0.5 + 1 / 3 + term(ia, r_a) + term(ib, r_b)), rel=1e-12)
+    for args in ((ib, None), (None, r_b)):
+        with pytest.raises(ValueError, match="give both inv_inertia_b and r_b"):
+            rb.contact.collision_impulse(-2.0, n, 0.5, 0.5, ia, r_a, 1 / 3, *args)
+    with pytest.raises(ValueError, match="normal must be a unit 3-vector"):
+        rb.contact.collision_impulse(-2.0, 2 * n, 0.5, 0.5, ia, r_a)
+    for e in (5.0, -0.1, np.nan):
+        with pytest.raises(ValueError, match=r"restitution must be in \[0, 1\]"):
+            rb.contact.collision_impulse(-2.0, n, e, 0.5, ia, r_a)
+    # Traced values are not checked (and not refused).
+    assert float(jax.jit(rb.contact.collision_impulse)(-2.0, n, 0.5, 0.5, ia, r_a)) > 0
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [({"max_penetration": 0.01}, "pass debug=True"), ({"debug": True, "max_penetration": -1.0}, "positive distance"),

@@ -501,6 +501,34 @@ def test_inside_out_mesh_raises():
         inertia.mass_properties(shapes.Mesh(vertices, faces[:, ::-1]), density=1.0)
 
 
+def test_meshes_and_point_masses_of_the_wrong_form_are_refused():
+    """from_mesh had taken quad faces (their first three corners: a unit cube of 1000 kg/m^3
+    came out 500 kg), wrapped a face index of -1 to the last vertex, and blamed a NaN
+    vertex on the face orientation; from_point_masses had put the centre of mass at inf or
+    NaN for masses summing to zero."""
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    quads = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+    with pytest.raises(ValueError, match=r"from_mesh: faces must have shape \(F>=4, 3\), triangles"):
+        inertia.from_mesh(cube, quads, density=1000.0)
+    triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    assert float(inertia.from_mesh(cube, triangles, density=1000.0).mass) == pytest.approx(1000.0, rel=1e-12)
+    wrapped = triangles.copy()
+    wrapped[wrapped == 7] = -1
+    with pytest.raises(ValueError, match=r"integer indices in \[0, 8\)"):
+        inertia.from_mesh(cube, wrapped, density=1000.0)
+    with pytest.raises(ValueError, match="vertices contain NaN"):
+        inertia.from_mesh(np.where(cube == 1, np.nan, cube), triangles, density=1000.0)
+    with pytest.raises(ValueError, match=r"Mesh: vertices must have shape \(V>=4, 3\)"):
+        shapes.Mesh(np.hstack([cube, cube[:, :1]]), triangles)
+    for masses in ([1.0, -1.0], [0.0, 0.0], [1.0, np.nan]):
+        with pytest.raises(ValueError, match="masses must be finite and >= 0 with a positive total"):
+            inertia.from_point_masses(np.asarray(masses), np.eye(3)[:2])
+    with pytest.raises(ValueError, match=r"masses must have shape \(n,\) and positions \(n, 3\)"):
+        inertia.from_point_masses(np.ones(3), np.eye(3)[:2])
+    # Traced masses pass the checks (a fit through them).
+    assert jax.grad(lambda m: inertia.from_point_masses(m, np.eye(3)).com[0])(jnp.ones(3)).shape == (3,)
+
+
 def test_open_or_inconsistently_oriented_meshes_are_refused():
     """The volume integrals need a closed surface whose faces agree on the orientation;
     an open cube missing one face gave 833 kg at a density of 1000, silently."""

@@ -197,6 +197,32 @@ def test_switches_must_be_true_or_false():
     assert rb.make_step(scene, rb.integrators.RK4(), 1e-3, debug=np.bool_(True)).debug is True
 
 
+def test_a_plane_cannot_be_a_body_and_its_offset_is_along_the_unit_normal():
+    """A body whose shape was a Plane had been accepted and collided as a plane through the
+    world's origin wherever the body was (a ball 5 m from such a 'wall' overlapped it by 0.1 m)."""
+    with pytest.raises(ValueError, match="a Plane is static and has no pose"):
+        rb.Body("wall", shape=rb.Plane(normal=(1.0, 0.0, 0.0)), mass=1.0, inertia=(1.0, 1.0, 1.0))
+    # Plane((0, 0, 2), 1.0) is z = 1: the offset is a distance along the unit normal.
+    plane = rb.Plane(normal=(0.0, 0.0, 2.0), offset=1.0)
+    assert plane.normal == (0.0, 0.0, 1.0)
+    contact = rb.collide(rb.Sphere(0.1), jnp.array([0.0, 0.0, 1.3]), jnp.array([1.0, 0.0, 0.0, 0.0]), plane)
+    assert float(contact.gap[0]) == pytest.approx(0.2, abs=1e-12)
+
+
+def test_mass_properties_of_a_body_are_checked():
+    """A NaN centre of mass had become the shape's offset (the ball then fell through the
+    ground); a dict had failed with an AttributeError, a batch with a conversion error."""
+    mp = rb.mass_properties(rb.Sphere(0.1), mass=1.0)
+    bad = [(rb.MassProperties(mp.mass, jnp.array([np.nan, 0.0, 0.0]), mp.inertia), "finite \\(3,\\) com"),
+           (rb.MassProperties(mp.mass, jnp.zeros(2), mp.inertia), "finite \\(3,\\) com"),
+           (rb.MassProperties(jnp.ones(2), jnp.zeros((2, 3)), jnp.stack([mp.inertia] * 2)), "scalar mass"),
+           ({"mass": 1.0, "com": [0, 0, 0], "inertia": np.eye(3)}, "must be an rb.MassProperties")]
+    for value, message in bad:
+        with pytest.raises(ValueError, match=message):
+            rb.Body("ball", shape=rb.Sphere(0.1), mass_properties=value)
+    assert rb.Body("ball", shape=rb.Sphere(0.1), mass_properties=mp).mass == pytest.approx(1.0)
+
+
 def test_user_force_function_with_wrong_shape():
     def wrong(t, params, state):
         return jnp.zeros(3), jnp.zeros(3)  # forgot the body axis

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..scene import GROUND, Scene
+from ..shapes import Cylinder
 from ..state import State
 from ._layout import detect
 from ._step import layout_of
@@ -27,9 +28,12 @@ def penetration(scene: Scene, state: State) -> Float[Array, ""]:
 
 
 def thinnest_size(scene: Scene) -> float | None:
-    """The smallest radius or half extent (m) among the bodies in the scene's contact pairs."""
+    """The smallest radius, half extent or cylinder half-length (m) among the bodies in the
+    scene's contact pairs. (A capsule's half-length is its segment's, not a thickness.)"""
     sizes = []
     for name in {n for pair in scene.contact_pairs for n in pair if n != GROUND}:
         shape = scene.bodies[scene.index(name)].shape
         sizes += [getattr(shape, "radius", float("inf")), *getattr(shape, "half_extents", ())]
+        if isinstance(shape, Cylinder):  # a coin: its half-thickness, not its radius
+            sizes.append(shape.half_length)
     return min(sizes) if sizes and min(sizes) < float("inf") else None
