@@ -268,7 +268,7 @@ def _check_closed_and_oriented(vertices, faces) -> None:
     position count as one, so a triangle soup (as STL files store a mesh) passes."""
     import numpy as np
 
-    _, same = np.unique(vertices, axis=0, return_inverse=True)
+    unique, same = np.unique(vertices, axis=0, return_inverse=True)
     corners = same.reshape(-1)[faces]
     edges = np.stack([corners, np.roll(corners, -1, axis=1)], -1).reshape(-1, 2).astype(np.int64)
     code = edges[:, 0] * len(vertices) + edges[:, 1]
@@ -282,6 +282,53 @@ def _check_closed_and_oriented(vertices, faces) -> None:
             f"it in opposite directions), but {open_edges} edges have no opposite (the surface is open there) "
             f"and {twice} are traversed twice the same way (a face flipped or given twice). Its volume and "
             "inertia would be wrong: close the surface and orient every face counter-clockwise seen from outside.")
+    _check_parts_outward(unique, corners)
+
+
+def _check_parts_outward(vertices, corners) -> None:
+    """Raise if a connected part of a closed mesh is inside out (negative volume) without
+    being a cavity inside another part. Each part then passes the edge test on its own, and
+    the total volume can still be positive: a mesh of two cubes, one wound inward, had
+    come out with volume 7 instead of 9, its centre of mass outside both.
+    ``vertices``: the distinct positions; ``corners``: ``(F, 3)`` face corners indexing them."""
+    import numpy as np
+
+    labels = np.arange(len(vertices))
+    while True:  # connected parts: each vertex takes the smallest label of any face it is on
+        face_min = labels[corners].min(axis=1)
+        new = labels.copy()
+        np.minimum.at(new, corners.ravel(), np.repeat(face_min, 3))
+        new = new[new]
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    part = labels[corners[:, 0]]
+    a, b, c = (vertices[corners[:, k]] for k in range(3))
+    volume = np.bincount(part, weights=np.einsum("fi,fi->f", a, np.cross(b, c)) / 6.0)
+    outward = volume > 0
+    for k in np.flatnonzero((volume < 0) & (np.bincount(part) > 0)):
+        point = a[np.flatnonzero(part == k)[0]]
+        inside = outward[part]  # faces of the parts that are the right way out
+        if _winding_number(point, a[inside], b[inside], c[inside]) < 0.5:
+            raise ValueError(
+                f"A connected part of the mesh ({int(np.sum(part == k))} faces) is inside out: its volume is "
+                f"{volume[k]:.4g} m^3 and it is not a cavity inside another part, so its volume and inertia would "
+                f"be subtracted. Check the face orientation: reverse the vertex order of that part's faces "
+                f"(counter-clockwise seen from outside).")
+
+
+def _winding_number(point, a, b, c) -> float:
+    """How many times the triangles ``(a, b, c)`` (each ``(F, 3)``) wind around ``point``:
+    their solid angles (Van Oosterom and Strackee) over ``4 pi``; 1 inside a closed,
+    outward surface, 0 outside."""
+    import numpy as np
+
+    x, y, z = a - point, b - point, c - point
+    lx, ly, lz = (np.linalg.norm(v, axis=1) for v in (x, y, z))
+    numerator = np.einsum("fi,fi->f", x, np.cross(y, z))
+    denominator = (lx * ly * lz + np.einsum("fi,fi->f", x, y) * lz + np.einsum("fi,fi->f", y, z) * lx
+                   + np.einsum("fi,fi->f", z, x) * ly)
+    return float(np.sum(2.0 * np.arctan2(numerator, denominator)) / (4.0 * np.pi))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -529,6 +529,21 @@ def test_meshes_and_point_masses_of_the_wrong_form_are_refused():
     assert jax.grad(lambda m: inertia.from_point_masses(m, np.eye(3)).com[0])(jnp.ones(3)).shape == (3,)
 
 
+def test_a_mesh_part_wound_inward_is_refused_unless_it_is_a_cavity():
+    """Two cubes, the second wound inward: each passes the edge test, the total volume is
+    positive (8 - 1 = 7 instead of 9), and the centre of mass came out outside both. A part
+    wound inward inside another is a cavity, and stays allowed."""
+    cube, faces = _box_mesh(np.array([0.5, 0.5, 0.5]), np.eye(3), np.zeros(3))
+    twice, n = np.vstack([2 * cube, cube + 10.0]), len(cube)
+    assert float(inertia.volume(shapes.Mesh(twice, np.vstack([faces, faces + n])))) == pytest.approx(9.0)
+    with pytest.raises(ValueError, match=r"part of the mesh \(12 faces\) is inside out: its volume is -1"):
+        shapes.Mesh(twice, np.vstack([faces, faces[:, ::-1] + n]))
+    with pytest.raises(ValueError, match="is inside out"):
+        inertia.from_mesh(twice, np.vstack([faces, faces[:, ::-1] + n]), density=1.0)
+    hollow = shapes.Mesh(np.vstack([4 * cube, cube]), np.vstack([faces, faces[:, ::-1] + n]))
+    assert float(inertia.volume(hollow)) == pytest.approx(64.0 - 1.0)
+
+
 def test_open_or_inconsistently_oriented_meshes_are_refused():
     """The volume integrals need a closed surface whose faces agree on the orientation;
     an open cube missing one face gave 833 kg at a density of 1000, silently."""
