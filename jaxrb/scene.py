@@ -46,8 +46,11 @@ class Body:
       :func:`jaxrb.inertia.compose` or a mesh).
 
     The body frame's origin is the centre of mass. ``shape_offset`` (m, body frame) is
-    where the shape's (or mass properties') own frame origin sits in the body frame; it
-    is zero except for meshes and composed parts whose centre of mass is off their origin.
+    where the shape's (or mass properties') own frame origin sits in the body frame,
+    ``-com`` of the mass properties used: non-zero for a mesh or composed parts whose
+    centre of mass is off their origin, given by ``shape`` with ``mass=``/``density=`` or by
+    ``mass_properties=``. With ``mass=`` and ``inertia=`` it is zero: the shape is then
+    taken to be placed with its origin at the centre of mass.
     """
 
     name: str
