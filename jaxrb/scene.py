@@ -160,9 +160,13 @@ class Scene:
             :class:`jaxrb.ExternalWrench`, ...). Only these are compiled into a step.
         ground: an optional static :class:`jaxrb.Plane` (the half-space below it is
             solid), named ``"ground"`` in contact pairs. A tilted normal makes an incline.
+        walls: further static planes, by name: a dict ``{name: rb.Plane(normal, offset)}``,
+            each solid on the side its normal points away from (the normal points into
+            the free space), named like the ground in contact pairs. E.g. a wall at
+            ``x = 1`` that keeps bodies at ``x < 1``: ``{"wall": rb.Plane((-1, 0, 0), -1.0)}``.
         contacts: the pairs of bodies that may touch, as ``(name_a, name_b)`` tuples
-            (``name_b`` may be ``"ground"``), or ``"all"``: every pair of bodies that have
-            shapes, plus every such body against the ground. Pairs whose shapes have no
+            (``name_b`` may be ``"ground"`` or a wall), or ``"all"``: every pair of bodies
+            that have shapes, plus every such body against the ground and each wall. Pairs whose shapes have no
             narrow-phase function are refused when listed and skipped by ``"all"``.
             Resolved once, here; :attr:`contact_pairs` holds the result. Default: none,
             and then no collision or contact code is compiled (``None`` means the same).
@@ -173,6 +177,7 @@ class Scene:
     forces: Sequence[ForceModel] = ()
     ground: Plane | None = None
     contacts: Sequence[tuple[str, str]] | str = ()
+    walls: Mapping[str, Plane] = ()
 
     def __post_init__(self):
         bodies = tuple(self.bodies)
@@ -213,7 +218,38 @@ class Scene:
                 f"Scene.ground must be an rb.Plane (e.g. rb.Plane(normal=(0, 0, 1), offset=0.0)) "
                 f"or None, got {self.ground!r}."
             )
+        object.__setattr__(self, "walls", self._resolve_walls(self.walls, names))
         object.__setattr__(self, "contacts", self._resolve_contacts(self.contacts))
+
+    @staticmethod
+    def _resolve_walls(walls, body_names) -> tuple[tuple[str, Plane], ...]:
+        """``walls`` as a tuple of ``(name, Plane)`` (hashable: the scene is static)."""
+        items = walls.items() if isinstance(walls, Mapping) else walls
+        try:
+            items = tuple((name, plane) for name, plane in items)
+        except (TypeError, ValueError):
+            raise ValueError(f"Scene.walls must be a dict {{name: rb.Plane(normal, offset)}}, got {walls!r}.") from None
+        for name, plane in items:
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"Scene.walls: a wall's name must be a non-empty string, got {name!r}.")
+            if not isinstance(plane, Plane):
+                raise ValueError(f"Scene.walls[{name!r}] must be an rb.Plane(normal, offset), got {plane!r}.")
+            if name == GROUND or name in body_names:
+                raise ValueError(f"Scene.walls: {name!r} is already the name of "
+                                 f"{'the ground plane' if name == GROUND else 'a body'}; name the wall otherwise.")
+        repeated = sorted({n for n, _ in items if [m for m, _ in items].count(n) > 1})
+        if repeated:
+            raise ValueError(f"Scene.walls: names must be unique; repeated: {repeated}.")
+        return items
+
+    @property
+    def planes(self) -> dict[str, Plane]:
+        """The static planes by the names contact pairs use: ``"ground"`` (if any), then the walls."""
+        return {**({GROUND: self.ground} if self.ground is not None else {}), **dict(self.walls)}
+
+    def is_plane(self, name: str) -> bool:
+        """Whether ``name`` is the ground's or a wall's (a static plane, B of its pairs)."""
+        return name == GROUND or name in dict(self.walls)
 
     def _resolve_contacts(self, contacts) -> tuple[tuple[str, str], ...]:
         from .collision import max_contacts  # the collision package imports shapes only
@@ -228,8 +264,7 @@ class Scene:
                 )
             shaped = [b for b in self.bodies if b.shape is not None]
             candidates = [(a.name, b.name) for i, a in enumerate(shaped) for b in shaped[i + 1:]]
-            if self.ground is not None:
-                candidates += [(b.name, GROUND) for b in shaped]
+            candidates += [(b.name, plane) for plane in self.planes for b in shaped]
             pairs, left_out = [], []
             for a, b in candidates:
                 try:
@@ -252,20 +287,24 @@ class Scene:
             if (not isinstance(pair, (tuple, list)) or len(pair) != 2
                     or not all(isinstance(x, str) for x in pair)):
                 raise ValueError(
-                    f"Each contact pair must be a (name_a, name_b) tuple of body names (or 'ground'), got {pair!r}."
+                    f"Each contact pair must be a (name_a, name_b) tuple of body names (or 'ground' or a wall's), "
+                    f"got {pair!r}."
                 )
             a, b = pair
-            if a == GROUND:
-                a, b = b, a  # the ground is always B
+            if self.is_plane(a) and self.is_plane(b):
+                raise ValueError(f"Contact pair {pair!r} pairs two static planes: a pair needs a body.")
+            if self.is_plane(a):
+                a, b = b, a  # a plane is always B
             for name in (a, b):
                 if name == GROUND and self.ground is None:
                     raise ValueError(
                         f"Contact pair {pair!r} names 'ground' but the scene has no ground: "
                         "pass ground=rb.Plane()."
                     )
-                if name != GROUND and name not in by_name:
-                    raise ValueError(f"Contact pair {pair!r}: unknown body {name!r}; bodies are {list(by_name)}.")
-                if name != GROUND and by_name[name].shape is None:
+                if not self.is_plane(name) and name not in by_name:
+                    raise ValueError(f"Contact pair {pair!r}: unknown body {name!r}; bodies are {list(by_name)}"
+                                     + (f", walls {[w for w, _ in self.walls]}." if self.walls else "."))
+                if not self.is_plane(name) and by_name[name].shape is None:
                     raise ValueError(
                         f"Contact pair {pair!r}: body {name!r} has no shape to collide with; give it shape=."
                     )
@@ -278,7 +317,7 @@ class Scene:
         return tuple(pairs)
 
     def _shape_of(self, name: str) -> Shape:
-        return self.ground if name == GROUND else self.bodies[self.index(name)].shape
+        return self.planes[name] if self.is_plane(name) else self.bodies[self.index(name)].shape
 
     # ------------------------------------------------------------------ structure
 
@@ -486,9 +525,9 @@ class Scene:
         per_pair = {tuple(k): v for k, v in value.items() if not isinstance(k, str)}
         in_pairs = {n for pair in pairs for n in pair}
         for name, v in per_body.items():
-            if name != GROUND:
+            if not self.is_plane(name):
                 self.index(name)  # raises on unknown names
-            elif self.ground is None:
+            elif name == GROUND and self.ground is None:
                 raise ValueError(f"{what}[{GROUND!r}]: this scene has no ground (pass ground=rb.Plane()).")
             if name not in in_pairs:
                 raise ValueError(f"{what}[{name!r}]: {name!r} is in no contact pair of this scene, so its {what} "

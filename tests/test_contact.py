@@ -880,6 +880,74 @@ def test_random_frictional_impacts_never_gain_energy():
 # ====================================================================== friction
 
 
+
+WALLS = {"east": rb.Plane((-1.0, 0.0, 0.0), -1.0), "west": rb.Plane((1.0, 0.0, 0.0), -1.0)}
+
+
+def _folded(distance, half_width=0.9):
+    """Where a point moving back and forth between -half_width and half_width is after
+    ``distance`` of travel from 0 (the path unfolded)."""
+    u = (distance + half_width) % (4 * half_width)
+    return -half_width + (u if u <= 2 * half_width else 4 * half_width - u)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_a_ball_between_two_walls_keeps_its_speed_and_its_rhythm(dtype):
+    """Walls are static planes like the ground: a ball (r = 0.1 m) between walls at x = +-1,
+    no gravity, e = 1, v = 3 m/s. Its impacts fall inside steps and are located there, so
+    after 3 s (five impacts) it is where the unfolded path says, and its speed is 3 m/s
+    throughout; the same impact times from the adaptive path's events."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], gravity=None, walls=WALLS, contacts="all")
+    assert scene.contact_pairs == (("ball", "east"), ("ball", "west"))
+    step = rb.make_step(scene, SPLIT, 1e-3)
+    params = scene.params(restitution=1.0, friction=0.0, dtype=dtype)
+    state = scene.state(params, velocity=(3.0, 0.0, 0.0))
+    _, trajectory = rb.rollout(step, params, state, 3000)
+    x, v = np.asarray(trajectory.position[:, 0, 0], float), np.asarray(trajectory.velocity[:, 0, 0], float)
+    tolerance = 1e-7 if dtype == jnp.float64 else 2e-4
+    expected = np.array([_folded(3.0 * 1e-3 * (k + 1)) for k in range(3000)])
+    np.testing.assert_allclose(x, expected, atol=tolerance)  # measured 3e-9 in float64
+    np.testing.assert_allclose(np.abs(v), 3.0, rtol=tolerance)
+    if dtype == jnp.float64:
+        impacts = rb.ode.solve_with_impacts(scene, params, state, 2.0, max_impacts=4)
+        np.testing.assert_allclose(impacts.impact_times, [0.3, 0.9, 1.5, np.inf], rtol=1e-9)
+
+
+def test_a_box_slides_into_a_wall_and_stops_there():
+    """A box (half-extent 0.1 m) sliding at 3 m/s on the ground (mu = 0.5: it would slide
+    0.917 m) meets a wall at x = 0.5 after 0.4 m, plastically (e = 0): it stops against the
+    wall and stays there, upright, without overlapping it."""
+    scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.1, 0.1)), mass=1.0)], ground=rb.Plane(),
+                     walls={"wall": rb.Plane((-1.0, 0.0, 0.0), -0.5)}, contacts="all")
+    step = rb.make_step(scene, SPLIT, 1e-3)
+    params = scene.params(restitution=0.0, friction=0.5)
+    final, trajectory = rb.rollout(step, params, scene.state(params, position=(0.0, 0.0, 0.1),
+                                                             velocity=(3.0, 0.0, 0.0)), 1000)
+    assert float(jnp.max(trajectory.position[:, 0, 0])) <= 0.4 + 1e-5
+    np.testing.assert_allclose(final.position[0], [0.4, 0.0, 0.1], atol=1e-5)
+    np.testing.assert_allclose(final.velocity[0], 0.0, atol=1e-2)  # resting: the closing half kick's g h / 2
+    assert float(rb.contact.penetration(scene, final)) < 1e-6
+
+
+def test_walls_are_checked_and_named_like_the_ground():
+    body = rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)
+    for walls, message in [([rb.Plane()], "must be a dict"), ({"w": (1, 0, 0)}, r"walls\['w'\] must be an rb.Plane"),
+                           ({"ground": rb.Plane()}, "already the name of the ground plane"),
+                           ({"ball": rb.Plane()}, "already the name of a body"), ({"": rb.Plane()}, "non-empty")]:
+        with pytest.raises(ValueError, match=message):
+            rb.Scene([body], walls=walls)
+    with pytest.raises(ValueError, match="pairs two static planes"):
+        rb.Scene([body], ground=rb.Plane(), walls=WALLS, contacts=[("ground", "east")])
+    with pytest.raises(ValueError, match=r"unknown body 'north'.*walls \['east', 'west'\]"):
+        rb.Scene([body], walls=WALLS, contacts=[("ball", "north")])
+    scene = rb.Scene([body], walls=WALLS, contacts=[("west", "ball")])  # the plane is B, as the ground is
+    assert scene.contact_pairs == (("ball", "west"),) and scene.planes == {"west": WALLS["west"], "east": WALLS["east"]}
+    assert float(scene.params(restitution={"west": 0.5}).restitution[0]) == 0.5
+    with pytest.raises(ValueError, match="in no contact pair"):
+        scene.params(restitution={"east": 0.5})
+    assert hash(scene) == hash(rb.Scene([body], walls=dict(WALLS), contacts=[("ball", "west")]))
+
+
 @pytest.mark.parametrize("dt", [1e-3, 1e-2])
 def test_sliding_box_stops_at_the_coulomb_distance(dt):
     """v0 = 5 m/s, mu = 0.5: it stops after v0^2 / (2 mu g) = 2.54842 m, within v0 h; no twist."""

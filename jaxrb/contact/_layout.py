@@ -24,7 +24,7 @@ from .._indexing import literal_array, take_rows
 from ..collision import Contact, collide, concatenate_contacts, max_contacts
 from ..collision._box import box_box_separation
 from ..collision._capsule import capsule_box_separation, capsule_cylinder_separation
-from ..scene import GROUND, Scene
+from ..scene import Scene
 from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import State
 
@@ -148,8 +148,8 @@ def build_layout(scene: Scene) -> Layout:
     keyed: dict[tuple, list[tuple[int, int, int]]] = {}
     for p, (a, b) in enumerate(scene.contact_pairs):
         ia = scene.index(a)
-        ib = n if b == GROUND else scene.index(b)
-        shape_b = scene.ground if b == GROUND else scene.bodies[ib].shape
+        ib = n if scene.is_plane(b) else scene.index(b)  # every static plane is the static "body" n
+        shape_b = scene.planes[b] if scene.is_plane(b) else scene.bodies[ib].shape
         keyed.setdefault((scene.bodies[ia].shape, shape_b), []).append((ia, ib, p))
     groups = []
     body_a: list[int] = []

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..scene import GROUND, Scene
+from ..scene import Scene
 from ..shapes import Cylinder
 from ..state import State
 from ._layout import detect
@@ -31,7 +31,7 @@ def thinnest_size(scene: Scene) -> float | None:
     """The smallest radius, half extent or cylinder half-length (m) among the bodies in the
     scene's contact pairs. (A capsule's half-length is its segment's, not a thickness.)"""
     sizes = []
-    for name in {n for pair in scene.contact_pairs for n in pair if n != GROUND}:
+    for name in {n for pair in scene.contact_pairs for n in pair if not scene.is_plane(n)}:
         shape = scene.bodies[scene.index(name)].shape
         sizes += [getattr(shape, "radius", float("inf")), *getattr(shape, "half_extents", ())]
         if isinstance(shape, Cylinder):  # a coin: its half-thickness, not its radius

@@ -56,7 +56,7 @@ from .._indexing import literal_array, take_rows
 from .._static import static_step_length
 from ..dynamics import linear_acceleration, wrench
 from ..forces import Gravity
-from ..scene import GROUND, Scene
+from ..scene import Scene
 from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
 from ._layout import Layout, build_layout, detect, pair_separations, slot_values
@@ -510,7 +510,7 @@ def _meeting_mid_step(ctx: _Ctx, state: State, acceleration, end_sep):
     """
     scene = ctx.scene
     pairs = [(i, scene.index(a), scene.index(b), _bounding_radius(scene, a) + _bounding_radius(scene, b))
-             for i, (a, b) in enumerate(scene.contact_pairs) if b != GROUND]
+             for i, (a, b) in enumerate(scene.contact_pairs) if not scene.is_plane(b)]
     if not pairs:
         return None
     index, body_a, body_b, reach = (np.asarray(x) for x in zip(*pairs, strict=True))
