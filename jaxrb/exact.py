@@ -207,6 +207,13 @@ def torque_free_top(inertia, omega0_body, times, orientation0=None) -> TorqueFre
     lam = np.sqrt((I_k - I_m) * Q / (I_j * I_m * I_k))
     m = min(1.0, (I_m - I_j) * P / ((I_k - I_m) * Q))  # guards rounding just above 1 near the separatrix
     m1 = (I_k - I_j) * separatrix / ((I_k - I_m) * Q)  # 1 − m without the cancellation of 1 − m
+    if m == 1.0:
+        # scipy's elliptic functions take m, not 1 − m: F(φ0 | 1) is infinite at φ0 = π/2,
+        # and the motion came out NaN (ω0 = (1e-8, 1, 0) about I = (1, 2, 3)). 1 − m of
+        # 1e-14 (a relative 1e-7 off the intermediate axis) is still resolved, to ~1e-9.
+        raise ValueError(f"omega0_body is within rounding of the separatrix L² = 2E I_mid (1 − m = {m1:.2g} rounds "
+                         f"m to 1, which the elliptic functions cannot resolve); perturb it by more (1 − m of "
+                         f"1e-14 or more is accurate)")
     period = 4.0 * ellipkm1(m1)  # 4 K(m), accurate even when m rounds to within ulps of 1
     tau0 = ellipkinc(np.arctan2(omega0[mid] / a_m, omega0[j] / a_j), m)  # P > 0 here, so a_j, a_m > 0
 
@@ -232,6 +239,12 @@ def torque_free_top(inertia, omega0_body, times, orientation0=None) -> TorqueFre
     from_e0 = _align_quat(momentum0 / L, e_k) * np.array([1.0, -1.0, -1.0, -1.0])  # conjugate: e -> n0
     q = _quat_mul(_quat_mul(_axis_angle_quat(L_world / L, psi), _quat_mul(q0, from_e0)), to_e)
     return TorqueFreeMotion(omega, q, _quat_to_matrix(q), L_world, 0.5 * two_e)
+
+
+#: How near a turning point of the heavy top's axis must come to a vertical (in ``1 ∓ u``)
+#: to count as reaching it, where ``a = ±b`` makes the vertical a root of ``f``: the root
+#: finder leaves it ~1e-16 off, and another root that close would be a double root.
+_POLE = 1e-12
 
 
 def _shifted_cubic_roots(beta, f2, f1, f0):
@@ -336,6 +349,19 @@ def heavy_symmetric_top(i_perp, i_axis, mgl, omega3, theta0, times, theta_dot0=0
     j_minus, j_plus = _cumulative_integral(inverse_factors, t, panel)
     phi = 0.5 * ((a - b) * j_minus + (a + b) * j_plus)
     psi = (omega3 - b) * t - 0.5 * ((a - b) * j_minus - (a + b) * j_plus)
+    # With a = -b (a = b) the downward (upward) vertical is a root of f: an axis that reaches
+    # it passes through the pole, e.g. a top released without spin swings through the bottom
+    # as a pendulum. There θ turns back in [0, π] while the axis goes on, so φ and ψ each
+    # jump by π (Rx(π + ε) = Rz(π) Rx(π − ε) Rz(π)), which the integrals above cannot give.
+    # The axis is at u = −1 where sn = 0 (τ = 2kK) and at u = 1 where cn = 0 (τ = (2k+1)K).
+    quarter = ellipk(m)
+    tau = lam * t + tau0
+    crossings = np.zeros_like(t)
+    if a + b == 0.0 and one_plus_u1 <= _POLE:
+        crossings += np.floor(tau / (2 * quarter)) - np.floor(tau0 / (2 * quarter))
+    if a - b == 0.0 and one_minus_u2 <= _POLE:
+        crossings += np.floor((tau - quarter) / (2 * quarter)) - np.floor((tau0 - quarter) / (2 * quarter))
+    phi, psi = phi + np.pi * crossings, psi + np.pi * crossings
 
     sn, cn, dn, _ = ellipj(lam * t + tau0, m)
     minus, plus = one_minus_plus_u(t)
