@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import platform
 import time
 import warnings
@@ -82,7 +83,12 @@ def default_integrators() -> list[Integrator]:
 
 
 def comparison_times(state: State, t_final: float, num_compare: int = 20) -> np.ndarray:
-    """``(num_compare,)`` absolute times (s): ``t0 + k (t_final - t0) / num_compare``, ``k = 1 .. num_compare``."""
+    """``(num_compare,)`` absolute times (s): ``t0 + k (t_final - t0) / num_compare``, ``k = 1 .. num_compare``.
+
+    Raises ``ValueError`` unless ``num_compare`` is a positive integer and ``t_final`` a
+    finite time later than ``state.time`` (0 had raised an IndexError, 2.5 given three
+    uneven times, and an earlier t_final times running backwards)."""
+    num_compare = _check_times(state, t_final, num_compare)
     t0 = float(state.time)
     times = t0 + (t_final - t0) * np.arange(1, num_compare + 1) / num_compare
     times[-1] = t_final  # exactly, so that the reference ends where the rollouts do
@@ -280,7 +286,12 @@ def _check_common(scene, params, state, t_final, num_compare) -> None:
             "its reference solution would ignore them. Build the scene without contacts, or compare a "
             "contact scene's runs with rb.ode.solve_with_impacts yourself."
         )
-    if isinstance(num_compare, bool) or not isinstance(num_compare, int) or num_compare < 1:
+    _check_times(state, t_final, num_compare)
+
+
+def _check_times(state, t_final, num_compare) -> int:
+    """``num_compare`` as an int, or a ``ValueError`` for it or for ``t_final``."""
+    if isinstance(num_compare, (bool, np.bool_)) or not isinstance(num_compare, numbers.Integral) or num_compare < 1:
         raise ValueError(f"num_compare must be a positive integer, got {num_compare!r}.")
     try:
         t_final = float(t_final)
@@ -290,6 +301,7 @@ def _check_common(scene, params, state, t_final, num_compare) -> None:
         raise ValueError(
             f"t_final = {t_final} s must be finite and later than the state's time {float(state.time)} s."
         )
+    return int(num_compare)
 
 
 def _candidates(integrators) -> list[Integrator]:
@@ -304,6 +316,10 @@ def _candidates(integrators) -> list[Integrator]:
         if not isinstance(candidate, Integrator):
             raise ValueError(f"integrators must be rb.integrators instances (e.g. rb.integrators.RK4()), "
                              f"got {candidate!r}.")
+    repeated = sorted({repr(c) for i, c in enumerate(integrators) if c in integrators[:i]})
+    if repeated:
+        # Two rows of the same name and the same work, which plot_tradeoff drew as one line.
+        raise ValueError(f"integrators lists the same integrator more than once: {repeated}. List each once.")
     return integrators
 
 

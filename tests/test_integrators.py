@@ -436,6 +436,9 @@ def test_integer_options_of_any_integer_type_are_accepted():
     assert rb.integrators.ImplicitMidpoint(iterations=np.int64(5)).iterations == 5
     split = rb.integrators.SymplecticSplitting(axes=[2, 1, 0])
     assert split.axes == (2, 1, 0) and hash(split) == hash(rb.integrators.SymplecticSplitting(axes=(2, 1, 0)))
+    # A NumPy array and a range too (refused as "not a permutation of (0, 1, 2)").
+    assert rb.integrators.SymplecticSplitting(axes=np.array([2, 1, 0])) == split
+    assert rb.integrators.SymplecticSplitting(axes=range(3)).axes == (0, 1, 2)
     scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0)])
     params = scene.params(dtype=jnp.float64)
     state = scene.state(params, angular_velocity=(0.3, 2.0, 0.1))

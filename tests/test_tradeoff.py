@@ -272,6 +272,8 @@ def test_a_scene_with_contacts_is_refused():
         ({"dts": []}, "dts is empty"),  # had computed the reference, then returned no rows
         ({"repeats": 0}, "repeats"),
         ({"num_compare": 0}, "num_compare"),
+        # Two rows of the same name and work, drawn as one line by plot_tradeoff.
+        ({"integrators": [rb.integrators.RK4(), rb.integrators.RK4()]}, "same integrator more than once"),
     ],
 )
 def test_bad_input_raises(kwargs, match):
@@ -280,6 +282,18 @@ def test_bad_input_raises(kwargs, match):
     t_final = kwargs.pop("t_final")
     with pytest.raises(ValueError, match=match):
         tradeoff.tradeoff(scene, params, state, t_final, **kwargs)
+
+
+def test_comparison_times_checks_its_input():
+    """It had checked nothing: 0 times raised an IndexError, 2.5 gave three uneven times,
+    an earlier t_final times running backwards."""
+    scene, params, state = two_body_scene()
+    np.testing.assert_allclose(rb.comparison_times(state, 0.2, np.int64(2)), [0.1, 0.2])
+    for t_final, num_compare, message in [(0.2, 0, "num_compare"), (0.2, 2.5, "num_compare"),
+                                          (0.2, True, "num_compare"), (-1.0, 2, "later than the state's time"),
+                                          (np.nan, 2, "finite")]:
+        with pytest.raises(ValueError, match=message):
+            rb.comparison_times(state, t_final, num_compare)
 
 
 def test_bad_objects_and_references_raise():

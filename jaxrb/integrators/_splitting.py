@@ -7,6 +7,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from .. import spatial
@@ -86,8 +87,10 @@ _coupled_turn.defjvp(_coupled_turn_jvp, symbolic_zeros=True)
 def _axes(value):
     """A sequence of axis indices as a tuple of Python ints (a list is not hashable, and
     static fields must hash); anything else unchanged, for the check to refuse."""
-    if isinstance(value, (list, tuple)):
-        return tuple(whole_number(a) for a in value)
+    if isinstance(value, (list, tuple, range)) or (isinstance(value, np.ndarray) and value.ndim == 1):
+        # A NumPy array or a range as well (np.array([2, 1, 0]) had been refused as "not a
+        # permutation of (0, 1, 2)"); its entries then pass the same check.
+        return tuple(whole_number(a.item() if isinstance(a, np.generic) else a) for a in value)
     return value
 
 
