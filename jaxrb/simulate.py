@@ -52,6 +52,10 @@ class Step(eqx.Module):
         scene's shape (a state carried over from another scene) are replaced by zeros, and
         dropped in a scene without contacts: they are a warm start only."""
         self.scene.check_state_shapes(state)
+        # The time in the positions' precision: an integer time had failed in rollout's scan
+        # (its carry's type changed at the first step), a float32 one with float64 positions
+        # had stayed float32 throughout.
+        state = dataclasses.replace(state, time=jnp.asarray(state.time, state.position.dtype))
         state = self.integrator.prepare(state)
         if not self.scene.contact_pairs:
             return dataclasses.replace(state, contact_impulse=None)
@@ -476,6 +480,27 @@ def _chunk_length(state: State, num_steps: int) -> int:
     return _largest_divisor(num_steps, longest, 2) or 1
 
 
+def _check_carried_form(step, params, state) -> None:
+    """Raise unless ``step(params, state)`` returns a state of the same structure and types
+    as ``state`` (what a loop carries). A step of :func:`make_step` wrapped in a function
+    or ``jax.jit`` hides its ``prepare``: from an unprepared state it adds fields (the
+    rotation matrix of ExplicitEuler, a contact scene's warm-start impulses), and the
+    loop failed with JAX's "carry input and carry output must have the same pytree
+    structure"."""
+    out = jax.eval_shape(step, params, state)
+    before = jax.tree.structure(state), [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(state)]
+    after = jax.tree.structure(out), [(x.shape, x.dtype) for x in jax.tree.leaves(out)]
+    if before != after:
+        changed = [f.name for f in dataclasses.fields(State)
+                   if jax.tree.structure(getattr(state, f.name)) != jax.tree.structure(getattr(out, f.name))
+                   or [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(getattr(state, f.name))]
+                   != [(x.shape, x.dtype) for x in jax.tree.leaves(getattr(out, f.name))]]
+        raise ValueError(f"step(params, state) returns a state whose {changed} differ from the state's (structure, "
+                         f"shape or dtype), so a loop cannot carry it. A step of rb.make_step wrapped in a function "
+                         f"or jax.jit needs its state prepared first: state = step.prepare(state), with the step "
+                         f"make_step returned (or pass that step to rollout itself).")
+
+
 def rollout(
     step: Callable[[Params, State], State],
     params: Params,
@@ -527,6 +552,8 @@ def rollout(
         )
     if isinstance(step, Step):
         state = step.prepare(state)
+    else:
+        _check_carried_form(step, params, state)
     final, trajectory = _rollout(step, params, state, num_steps, save_every, checkpoint)
     if include_initial:
         trajectory = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, trajectory)

@@ -16,6 +16,7 @@ from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from . import spatial
@@ -141,18 +142,32 @@ def _to_world(rot, m_body):
     return spatial.matmul(spatial.matmul(rot, m_body), spatial.transpose(rot))
 
 
+def _same_bodies(params: Params, state: State) -> None:
+    """Raise unless ``params`` and ``state`` hold the same number of bodies (shapes only,
+    so it works on traced values): one scene's params with another's state had broadcast
+    silently (two bodies' energies from one body's state)."""
+    n_params, n_state = jnp.shape(params.mass)[-1:], jnp.shape(state.position)[-2:-1]
+    if n_params != n_state:
+        raise ValueError(f"params hold {n_params[0] if n_params else '?'} bodies and the state "
+                         f"{n_state[0] if n_state else '?'}: they must come from the same scene "
+                         f"(scene.params(), scene.state()).")
+
+
 def world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:
     """``I = A I_body A^T`` (seed 000), kg m^2, world frame, about the centre of mass."""
+    _same_bodies(params, state)
     return _to_world(rotation_matrix(state), body_inertia(params))
 
 
 def inverse_world_inertia(params: Params, state: State) -> Float[Array, "n 3 3"]:
     """``I^-1 = A I_body^-1 A^T`` (seed 000's update of I^-1)."""
+    _same_bodies(params, state)
     return _to_world(rotation_matrix(state), inverse_inertia_body(params))
 
 
 def angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
     """``omega = I^-1 L`` (rad/s, world frame), seed 000's ``omega <- I^-1 L``."""
+    _same_bodies(params, state)
     rot = rotation_matrix(state)
     l_body = spatial.matvec(spatial.transpose(rot), state.angular_momentum)
     omega_body = spatial.matvec(inverse_inertia_body(params), l_body)
@@ -161,6 +176,7 @@ def angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
 
 def body_angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
     """Angular velocity in the body frame, ``A^T omega`` (rad/s)."""
+    _same_bodies(params, state)
     rot = rotation_matrix(state)
     l_body = spatial.matvec(spatial.transpose(rot), state.angular_momentum)
     return spatial.matvec(inverse_inertia_body(params), l_body)
@@ -168,6 +184,7 @@ def body_angular_velocity(params: Params, state: State) -> Float[Array, "n 3"]:
 
 def translational_kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
     """``m |v|^2 / 2`` per body (J)."""
+    _same_bodies(params, state)
     return 0.5 * params.mass * spatial.dot(state.velocity, state.velocity)
 
 
@@ -183,6 +200,7 @@ def kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
 
 def potential_energy(params: Params, state: State) -> Float[Array, " n"]:
     """Gravitational potential ``-m g . x`` per body (J), zero at the world origin."""
+    _same_bodies(params, state)
     return -params.mass * spatial.dot(params.gravity[None, :], state.position)
 
 
@@ -193,6 +211,7 @@ def total_energy(params: Params, state: State) -> Float[Array, " n"]:
 
 def linear_momentum(params: Params, state: State) -> Float[Array, "n 3"]:
     """``p = m v`` per body (kg m/s, world frame)."""
+    _same_bodies(params, state)
     return params.mass[:, None] * state.velocity
 
 
@@ -204,5 +223,7 @@ def angular_momentum_about(
     ``L_point = (x - point) x m v + L`` (kg m^2/s, world frame). Summed over bodies it is
     the quantity conserved by an isolated system.
     """
+    if point is not None and np.shape(point) != (3,):
+        raise ValueError(f"point must be one (3,) world point (m), got shape {np.shape(point)}.")
     r = state.position if point is None else state.position - jnp.asarray(point)[None, :]
     return spatial.cross(r, linear_momentum(params, state)) + state.angular_momentum

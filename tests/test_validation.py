@@ -223,6 +223,42 @@ def test_mass_properties_of_a_body_are_checked():
     assert rb.Body("ball", shape=rb.Sphere(0.1), mass_properties=mp).mass == pytest.approx(1.0)
 
 
+def test_helpers_refuse_params_and_state_of_different_scenes():
+    """kinetic_energy(two bodies' params, one body's state) had broadcast to two energies;
+    angular_momentum_about with a (1, 3) point had returned (1, 1, 3)."""
+    one = scene_of(BALL)
+    two = scene_of(BALL, rb.Body("b", shape=rb.Sphere(0.1), mass=2.0))
+    for helper in (rb.kinetic_energy, rb.potential_energy, rb.linear_momentum, rb.angular_velocity,
+                   rb.world_inertia, rb.total_energy):
+        with pytest.raises(ValueError, match="params hold 2 bodies and the state 1"):
+            helper(two.params(), one.state())
+    params, state = one.params(), one.state(velocity=(1.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=r"point must be one \(3,\) world point"):
+        rb.angular_momentum_about(params, state, [[1.0, 2.0, 3.0]])
+    assert rb.angular_momentum_about(params, state, [0.0, 1.0, 0.0]).shape == (1, 3)
+    # A trajectory, through vmap as documented.
+    trajectory = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+    assert jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, trajectory).shape == (2, 1)
+
+
+def test_rollout_of_a_wrapped_step_and_of_a_state_of_another_time_type():
+    """A step of make_step wrapped in a lambda (or jax.jit) hides its prepare: from an
+    unprepared state the loop had failed with JAX's "carry input and carry output must
+    have the same pytree structure". An integer time had failed in the scan, a float32
+    time with float64 positions had stayed float32."""
+    scene = scene_of(rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=1.0))
+    params = scene.params(dtype=jnp.float64)
+    euler = rb.make_step(scene, rb.integrators.ExplicitEuler(), 0.1)
+    with pytest.raises(ValueError, match=r"returns a state whose \['rotation'\] differ.*step.prepare\(state\)"):
+        rb.rollout(lambda p, s: euler(p, s), params, scene.state(params), 4)
+    _, trajectory = rb.rollout(lambda p, s: euler(p, s), params, euler.prepare(scene.state(params)), 4)
+    np.testing.assert_allclose(trajectory.time, [0.1, 0.2, 0.3, 0.4])
+    for time in (np.int32(2), jnp.float32(2.0)):
+        _, trajectory = rb.rollout(euler, params, scene.state(params).replace(time=time), 3)
+        assert trajectory.time.dtype == jnp.float64
+        np.testing.assert_allclose(trajectory.time, [2.1, 2.2, 2.3], rtol=1e-15)
+
+
 def test_user_force_function_with_wrong_shape():
     def wrong(t, params, state):
         return jnp.zeros(3), jnp.zeros(3)  # forgot the body axis
