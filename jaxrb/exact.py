@@ -8,8 +8,9 @@ Two classical exact solutions of rigid-body dynamics:
   Jacobi elliptic functions and φ(t), ψ(t) from smooth scalar quadratures.
 
 This module deliberately imports nothing from jaxrb: a reference must not share code
-with what it checks. scipy is a dev dependency only, so ``import jaxrb`` never imports
-this module. Conventions: SI units; quaternions scalar first ``(w, x, y, z)`` mapping
+with what it checks. It needs scipy, which jax itself requires (``import jaxrb``
+imports this module as ``rb.exact``); without it, importing this module says so.
+Conventions: SI units; quaternions scalar first ``(w, x, y, z)`` mapping
 body to world; rotation matrices hold the body axes as columns (``v_world = R v_body``).
 
 References: L. D. Landau & E. M. Lifshitz, *Mechanics*, §§35–37 (Euler's equations,
@@ -25,7 +26,7 @@ import numpy as np
 
 try:
     from scipy.special import ellipj, ellipk, ellipkinc, ellipkm1
-except ImportError as err:  # scipy is a dev dependency; jaxrb itself never imports this module
+except ImportError as err:  # jax requires scipy, so this is for an unusual install
     raise ImportError("jaxrb.exact needs scipy: pip install scipy") from err
 
 # 16-point Gauss–Legendre on panels at most 0.5 wide in the elliptic argument τ: the

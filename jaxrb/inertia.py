@@ -15,9 +15,10 @@ expressed in one frame: ``com`` is a position in that frame and ``inertia`` is t
 ``com`` along that frame's axes. Every primitive shape's frame has its origin at its
 centre of mass and its axes along the shape's symmetry axes, with the symmetry axis of
 rods, disks, cylinders, capsules and cones along **z** (see :mod:`jaxrb.shapes`); sizes
-are *half* sizes. Seed 001's table puts the axis of the rod, cylinder and cone along x
-and uses full lengths; each primitive's docstring maps its row to these conventions and
-says where the printed row is garbled.
+are *half* sizes, except a cone's ``height``, which is its full height. Seed 001's table
+puts the axis of the rod, cylinder and cone along x and uses full lengths; each
+primitive's docstring maps its row to these conventions and says where the printed row
+is garbled.
 
 Differentiability. The primitive functions (:func:`box`, :func:`cylinder`, ...),
 :func:`from_point_masses`, :func:`from_mesh`, :func:`compose` and
