@@ -1189,3 +1189,30 @@ def test_flip_and_concatenate():
     # Batched contacts concatenate along the slot axis too.
     batched = jax.vmap(lambda p: collision.sphere_plane(SHAPES["sphere"][0], p, IDENTITY, PLANE))(jnp.zeros((3, 3)))
     assert collision.concatenate_contacts([batched, batched]).gap.shape == (3, 2)
+
+
+def test_cores_within_round_off_take_the_fallback_normal_under_jit_and_vmap():
+    """A sphere centred on a capsule's segment, and two capsules whose segments cross: the
+    closest points coincide up to round-off, and the normal is the documented fallback (the
+    capsule's body x axis, perpendicular to its segment; a_a x a_b). Compiled under jit and
+    vmap the round-off difference had been normalised instead: normals of length 0.09 to 11
+    along the segment, and for the crossing capsules A's own axis (0.75 to separate along
+    it, against 0.25 along a_a x a_b)."""
+    rng = np.random.default_rng(0)
+    q = random_quats(rng, 300)
+    axes = np.stack([quat_matrix(x)[:, 2] for x in q])
+    identity = jnp.array([1.0, 0.0, 0.0, 0.0])
+    on_segment = jax.jit(jax.vmap(lambda p, qb: collision.collide(
+        Sphere(0.2), p, identity, Capsule(0.1, 0.5), jnp.zeros(3), qb)))(0.3 * axes, q)
+    normal = np.asarray(on_segment.normal[:, 0])
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(normal * axes, axis=1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(on_segment.gap[:, 0], -0.3, atol=1e-12)
+    turn = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # a quarter turn about y
+    qa = np.stack([quat_mul(x, turn) for x in q])
+    crossing = jax.jit(jax.vmap(lambda qa, qb: collision.collide(
+        Capsule(0.1, 0.5), jnp.zeros(3), qa, Capsule(0.15, 0.3), jnp.zeros(3), qb)))(qa, q)
+    across = np.cross(np.stack([quat_matrix(x)[:, 2] for x in qa]), axes)
+    normal = np.asarray(crossing.normal[:, 0])
+    np.testing.assert_allclose(np.abs(np.sum(normal * across, axis=1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(crossing.gap[:, 0], -0.25, atol=1e-12)

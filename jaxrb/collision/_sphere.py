@@ -34,11 +34,16 @@ def rounded_points_contact(
     When the cores coincide every direction is a valid normal; ``fallback_normal`` (unit)
     is used. ``safe_norm`` keeps the gradient finite there (0 for the distance, whose
     derivative ``d/|d|`` is 0/0), and ``safe_normalize`` keeps the unused branch finite.
-    Broadcasts over leading slot axes.
+    Cores within round-off of each other (64 eps of the coordinates and radii) count as
+    coincident: their difference is noise, and compiled under ``jit`` and ``vmap`` its
+    normalisation had come out of unit length (0.05 to 11 for a sphere centred on a
+    capsule's segment). Broadcasts over leading slot axes.
     """
     d = core_a - core_b
     distance = spatial.safe_norm(d)
-    normal = jnp.where((distance == 0)[..., None], fallback_normal, spatial.safe_normalize(d))
+    scale = jnp.maximum(jnp.max(jnp.abs(core_a), axis=-1), jnp.max(jnp.abs(core_b), axis=-1)) + radius_a + radius_b
+    coincident = distance <= 64 * jnp.finfo(d.dtype).eps * scale
+    normal = jnp.where(coincident[..., None], fallback_normal, spatial.safe_normalize(d))
     gap = distance - radius_a - radius_b
     return core_a - radius_a * normal, normal, gap
 
