@@ -88,7 +88,7 @@ def comparison_times(state: State, t_final: float, num_compare: int = 20) -> np.
     Raises ``ValueError`` unless ``num_compare`` is a positive integer and ``t_final`` a
     finite time later than ``state.time`` (0 had raised an IndexError, 2.5 given three
     uneven times, and an earlier t_final times running backwards)."""
-    num_compare = _check_times(state, t_final, num_compare)
+    num_compare = _check_comparison_times(state, t_final, num_compare)
     t0 = float(state.time)
     times = t0 + (t_final - t0) * np.arange(1, num_compare + 1) / num_compare
     times[-1] = t_final  # exactly, so that the reference ends where the rollouts do
@@ -286,10 +286,10 @@ def _check_common(scene, params, state, t_final, num_compare) -> None:
             "its reference solution would ignore them. Build the scene without contacts, or compare a "
             "contact scene's runs with rb.ode.solve_with_impacts yourself."
         )
-    _check_times(state, t_final, num_compare)
+    _check_comparison_times(state, t_final, num_compare)
 
 
-def _check_times(state, t_final, num_compare) -> int:
+def _check_comparison_times(state, t_final, num_compare) -> int:
     """``num_compare`` as an int, or a ``ValueError`` for it or for ``t_final``."""
     if isinstance(num_compare, (bool, np.bool_)) or not isinstance(num_compare, numbers.Integral) or num_compare < 1:
         raise ValueError(f"num_compare must be a positive integer, got {num_compare!r}.")

@@ -480,6 +480,11 @@ def _chunk_length(state: State, num_steps: int) -> int:
     return _largest_divisor(num_steps, longest, 2) or 1
 
 
+def _form(tree) -> tuple:
+    """A pytree's structure with each leaf's shape and dtype: what a loop's carry must keep."""
+    return jax.tree.structure(tree), [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(tree)]
+
+
 def _check_carried_form(step, params, state) -> None:
     """Raise unless ``step(params, state)`` returns a state of the same structure and types
     as ``state`` (what a loop carries). A step of :func:`make_step` wrapped in a function
@@ -488,13 +493,9 @@ def _check_carried_form(step, params, state) -> None:
     loop failed with JAX's "carry input and carry output must have the same pytree
     structure"."""
     out = jax.eval_shape(step, params, state)
-    before = jax.tree.structure(state), [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(state)]
-    after = jax.tree.structure(out), [(x.shape, x.dtype) for x in jax.tree.leaves(out)]
-    if before != after:
+    if _form(state) != _form(out):
         changed = [f.name for f in dataclasses.fields(State)
-                   if jax.tree.structure(getattr(state, f.name)) != jax.tree.structure(getattr(out, f.name))
-                   or [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(getattr(state, f.name))]
-                   != [(x.shape, x.dtype) for x in jax.tree.leaves(getattr(out, f.name))]]
+                   if _form(getattr(state, f.name)) != _form(getattr(out, f.name))]
         raise ValueError(f"step(params, state) returns a state whose {changed} differ from the state's (structure, "
                          f"shape or dtype), so a loop cannot carry it. A step of rb.make_step wrapped in a function "
                          f"or jax.jit needs its state prepared first: state = step.prepare(state), with the step "
