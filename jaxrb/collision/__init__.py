@@ -26,6 +26,10 @@ capsule-cylinder   2    closest segment point + the other end of its overlap wit
                         the cap's disc or the side's slab (see its docstring for a
                         segment that enters the cylinder)
 box-box            4    SAT; clipped face manifold reduced to 4, or one edge-edge
+cylinder-box       5    the deepest of the box's corners and edge points and the
+                        cylinder's rim square and side lines, each against the
+                        other solid or held on a face; spread by farthest points
+                        (overlapping: slot 0 pushes along the best direction)
 =================  ===  ==========================================================
 """
 
@@ -35,6 +39,7 @@ from ._capsule import capsule_capsule as capsule_capsule
 from ._capsule import capsule_cylinder as capsule_cylinder
 from ._contact import Contact as Contact
 from ._contact import concatenate_contacts as concatenate_contacts
+from ._cylinder import cylinder_box as cylinder_box
 from ._dispatch import collide as collide
 from ._dispatch import max_contacts as max_contacts
 from ._dispatch import supported_pairs as supported_pairs

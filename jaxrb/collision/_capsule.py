@@ -187,12 +187,7 @@ def capsule_box(
     centre = spatial.dot(axes_b, (position_a - position_b)[None, :])  # box frame
     direction = spatial.dot(axes_b, axis[None, :])
     tangential = jnp.arange(3) != jnp.argmax(jnp.abs(normal_box))
-    moving = jnp.abs(direction) > jnp.finfo(dtype).eps
-    step = jnp.where(moving, direction, 1.0)
-    ends = jnp.stack([(-half_box - centre) / step, (half_box - centre) / step])
-    inside = jnp.abs(centre) <= half_box  # a slab the segment runs parallel to: all or nothing
-    enter = jnp.where(moving, jnp.min(ends, 0), jnp.where(inside, -half, half))
-    leave = jnp.where(moving, jnp.max(ends, 0), jnp.where(inside, half, -half))
+    enter, leave = geo.slab_intervals(centre, direction, half_box, half)
     tolerance = 64 * jnp.finfo(dtype).eps * (spatial.safe_norm(centre) + half + jnp.sum(half_box))
     s0, s1, overlaps = _overlap_slots(
         ball, distance, s_search, jnp.max(jnp.where(tangential, enter, -half)),

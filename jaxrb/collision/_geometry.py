@@ -146,3 +146,21 @@ def closest_between_segments(
     t_clamped = jnp.clip(t, -half_b, half_b)
     s = jnp.where(t_clamped != t, jnp.clip(b * t_clamped - c, -half_a, half_a), s)
     return s, t_clamped
+
+
+def slab_intervals(
+    centre: Float[Array, "3"], direction: Float[Array, "3"], half_extents: Float[Array, "3"], half_length
+) -> tuple[Array, Array]:
+    """Where a segment ``centre + s direction``, ``|s| <= half_length``, lies inside each of a
+    box's three slabs ``|x_i| <= e_i`` (all in the box frame): ``(enter, leave)``, each
+    ``(3,)``, the bounds of ``s`` per slab before clipping to ``[-half_length, half_length]``.
+    A segment parallel to a slab (to ``eps``) is in it entirely or not at all: ``(-half,
+    half)`` or the empty ``(half, -half)``. Intersect the slabs you need and the segment's
+    own range; the interval is empty where its lower bound exceeds its upper."""
+    moving = jnp.abs(direction) > jnp.finfo(centre.dtype).eps
+    step = jnp.where(moving, direction, 1.0)
+    ends = jnp.stack([(-half_extents - centre) / step, (half_extents - centre) / step])
+    inside = jnp.abs(centre) <= half_extents
+    enter = jnp.where(moving, jnp.min(ends, 0), jnp.where(inside, -half_length, half_length))
+    leave = jnp.where(moving, jnp.max(ends, 0), jnp.where(inside, half_length, -half_length))
+    return enter, leave
