@@ -104,11 +104,12 @@ def test_float32_contact_steps_have_no_float64_under_x64():
     box, ball, capsule = rb.Box((0.1, 0.1, 0.1)), rb.Sphere(0.1), rb.Capsule(0.05, 0.1)
     bodies = [rb.Body("box", shape=box, mass=1.0), rb.Body("ball", shape=ball, mass=1.0),  # every pair type
               rb.Body("capsule", shape=capsule, mass=1.0), rb.Body("box2", shape=box, mass=2.0),
-              rb.Body("can", shape=rb.Cylinder(0.05, 0.1), mass=1.0)]
+              rb.Body("can", shape=rb.Cylinder(0.05, 0.1), mass=1.0),
+              rb.Body("can2", shape=rb.Cylinder(0.05, 0.1), mass=1.0)]
     scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
     params = scene.params(friction=0.5, restitution=0.5, dtype=jnp.float32)
     state = scene.state(params, position=[[0.0, 0.0, 0.1], [0.0, 0.0, 0.3], [0.3, 0.0, 0.05], [0.3, 0.0, 0.2],
-                                          [0.6, 0.0, 0.1]], velocity=[[0.0, 0.0, -1.0]] * 5)
+                                          [0.6, 0.0, 0.1], [0.6, 0.0, 0.35]], velocity=[[0.0, 0.0, -1.0]] * 6)
     cases = [(rb.integrators.SymplecticSplitting(), "pgs"), (rb.integrators.SymplecticSplitting(), "exact"),
              (rb.integrators.RK4(), "pgs")]
     for integrator, solver in cases:

@@ -30,6 +30,9 @@ cylinder-box       5    the deepest of the box's corners and edge points and the
                         cylinder's rim square and side lines, each against the
                         other solid or held on a face; spread by farthest points
                         (overlapping: slot 0 pushes along the best direction)
+cylinder-cylinder  5    the same from both: rim squares, each rim's point closest
+                        to the other (sampled, then searched), the side point
+                        facing the other's axis, the line over the other's cap
 =================  ===  ==========================================================
 """
 
@@ -40,6 +43,7 @@ from ._capsule import capsule_cylinder as capsule_cylinder
 from ._contact import Contact as Contact
 from ._contact import concatenate_contacts as concatenate_contacts
 from ._cylinder import cylinder_box as cylinder_box
+from ._cylinder import cylinder_cylinder as cylinder_cylinder
 from ._dispatch import collide as collide
 from ._dispatch import max_contacts as max_contacts
 from ._dispatch import supported_pairs as supported_pairs

@@ -281,17 +281,7 @@ def capsule_cylinder(
     direction = spatial.dot(axes_b, axis[None, :])
 
     # Over the disc: |radial(centre + s direction)| <= radius_b, a quadratic in s.
-    a = direction[0] ** 2 + direction[1] ** 2
-    b = centre[0] * direction[0] + centre[1] * direction[1]
-    c = centre[0] ** 2 + centre[1] ** 2 - radius_b**2
-    discriminant = b * b - a * c
-    tilted = a > eps  # not parallel to the axis
-    crosses = discriminant > 0
-    root = jnp.where(crosses, jnp.sqrt(jnp.where(crosses, discriminant, 1.0)), 0.0)
-    a_safe = jnp.where(tilted, a, 1.0)
-    over_disc = c <= 0  # a segment parallel to the axis: all of it or none
-    disc_enter = jnp.where(tilted, jnp.where(crosses, (-b - root) / a_safe, half), jnp.where(over_disc, -half, half))
-    disc_leave = jnp.where(tilted, jnp.where(crosses, (-b + root) / a_safe, -half), jnp.where(over_disc, half, -half))
+    disc_enter, disc_leave = geo.disc_interval(centre, direction, radius_b, half)
     # Within the slab |z| <= half_b.
     moving = jnp.abs(direction[2]) > eps
     step = jnp.where(moving, direction[2], 1.0)

@@ -1,4 +1,7 @@
-"""Cylinder (A) against a box (B): ``K = 5``, well-spread slots from point contacts.
+"""Cylinder (A) against a box or a cylinder (B): ``K = 5``, well-spread slots from point contacts.
+
+This docstring describes cylinder-box; :func:`cylinder_cylinder` builds its candidates
+from both cylinders the same way (see there).
 
 A cylinder's surface is curved, so there is no finite set of separating axes to test as
 box-box does. Instead the candidates are points of one solid, each against the other:
@@ -75,7 +78,7 @@ from ._contact import Contact, contact_from_surface_point
 from ._plane import _SQUARE, TILT_RAMP
 from ._sphere import ball_box_contact, ball_cylinder_contact
 
-__all__ = ["cylinder_box"]
+__all__ = ["cylinder_box", "cylinder_cylinder"]
 
 #: Slots, as in cylinder-plane: a cylinder standing on a face needs its cap's deepest point
 #: and a square of rim points around it.
@@ -179,27 +182,11 @@ def cylinder_box(
     cylinder_points = jnp.concatenate([rims, lines])  # (14, 3)
 
     # Each point against the other solid, held against a reference face where it lies over
-    # it (see the module docstring): A's surface point, the normal (B to A), the gap.
-    box_side = spatial.dot(axes_a, (pb - pa)[None, :])  # the box's centre in the cylinder's frame
-    cap_sign = geo.sign_nonzero(box_side[2])
-    on_cap = jnp.abs(box_side[2]) - half >= spatial.safe_norm(box_side[:2]) - radius
-
+    # it (see the module docstring): A's surface point, the normal (B to A), the gap, and the
+    # nearest face's normal.
     def against_cylinder(x):
-        _, nearest, gap = ball_cylinder_contact(x, 0.0, pa, axes_a, radius, half)  # nearest: cylinder to x
-        local = spatial.dot(axes_a, (x - pa)[None, :])  # the cylinder's frame
-        rho = spatial.safe_norm(local[:2])
-        along = cap_sign * local[2]  # height along the axis, towards the box's side
-        off_axis = rho > round_off
-        radial = jnp.where(off_axis, local * literal_array([1.0, 1.0, 0.0], dtype) / jnp.where(off_axis, rho, 1.0),
-                           literal_array([1.0, 0.0, 0.0], dtype))
-        over_cap = on_cap & (rho <= radius) & (along >= -half)
-        beside = ~on_cap & (jnp.abs(local[2]) <= half)
-        held_gap = jnp.where(over_cap, along - half, rho - radius)
-        held = (over_cap | beside) & (held_gap >= -shallow)
-        held_local = jnp.where(over_cap, cap_sign * literal_array([0.0, 0.0, 1.0], dtype), radial)
-        outward = jnp.where(held, spatial.dot(spatial.transpose(axes_a), held_local[None, :]), nearest)
-        gap = jnp.where(held, held_gap, gap)
-        return x - gap * outward, -outward, gap, -nearest
+        point, outward, gap, nearest = _held_on_cylinder(x, pa, axes_a, radius, half, pb, round_off, shallow)
+        return point, -outward, gap, -nearest
 
     def against_box(x, face, over_by_construction):
         _, normal, gap, _ = ball_box_contact(x, 0.0, pb, axes_b, half_box)
@@ -229,11 +216,18 @@ def cylinder_box(
     across_edges = spatial.cross(jnp.repeat(axes_b, 4, axis=0), tangents)
     directions = jnp.concatenate([axes_b, axis[None, :], normal_b, normal_c, nearest_b, nearest_c, across_edges,
                                   box_points[:8] - rims_near[:8]])
-    push_normal, push_gap = _best_separating_direction(directions, pa - pb, axis, radius, half, axes_b, half_box)
+    push_normal, push_gap = _best_separating_direction(
+        directions, pa - pb, lambda n: _cylinder_reach(n, axis, radius, half) + _box_reach(n, axes_b, half_box))
+    return _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin)
+
+
+def _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin) -> Contact:
+    """The slots, with slot 0 along the best separating direction where the shapes overlap
+    (its gap the overlap along it) or touch to within the searches' resolution."""
     # (Inside by more than round-off: touching shapes keep their exact candidate.)
     overlap = gap[0] < -round_off
-    # Touching to within the edges' search (which places a point to ~1e-10 of an edge's
-    # length, so where a rim meets an edge, whose distance has a kink at 0, its point's
+    # Touching to within the searches (which place a point to ~1e-10 of an edge's length or
+    # a rim's arc, so where a rim meets an edge, whose distance has a kink at 0, its point's
     # normal can be any direction), slot 0 takes the best direction too where that is as
     # good (the direction across the edge and the rim).
     touching = (gap[0] <= 1e-8 * scale) & (push_gap >= gap[0] - 1e-8 * scale)
@@ -273,21 +267,203 @@ def _nearest_rim_point(x, centre, axes, radius, half):
     return centre + geo.sign_nonzero(along) * half * axes[2] + radius * outward
 
 
-def _best_separating_direction(directions, delta, axis, radius, half, axes_b, half_box):
-    """The direction (unit, box to cylinder) among ``directions`` ``(m, 3)`` along which the
-    cylinder (centre ``delta`` from the box's) is farthest out of the box, and that
-    separation ``|n.delta| - rho_cylinder(n) - rho_box(n)`` (m; negative: the overlap along
-    ``n``, a push that frees the shapes). The separation along any direction is at most the
-    signed distance, with equality along the true contact normal. Directions shorter than
+def _held_on_cylinder(x, centre, axes, radius, half, other_centre, round_off, shallow):
+    """A point ``x`` (world, m) against a cylinder (``centre``; ``axes`` rows its world axes,
+    the third its axis), held on a reference face where it lies over it (see the module
+    docstring): the cap facing ``other_centre`` (the other shape's centre) where that is
+    farther out of the caps' slab than out of the side, the side otherwise, while ``x`` is at
+    most ``shallow`` into it. Returns the cylinder's point, the unit normal from the cylinder
+    towards ``x``, the gap (m), and the nearest face's normal (as
+    :func:`._sphere.ball_cylinder_contact`)."""
+    dtype = x.dtype
+    _, nearest, gap = ball_cylinder_contact(x, 0.0, centre, axes, radius, half)
+    other = spatial.dot(axes, (other_centre - centre)[None, :])  # the cylinder's frame
+    cap_sign = geo.sign_nonzero(other[2])
+    on_cap = jnp.abs(other[2]) - half >= spatial.safe_norm(other[:2]) - radius
+    local = spatial.dot(axes, (x - centre)[None, :])
+    rho = spatial.safe_norm(local[:2])
+    along = cap_sign * local[2]  # height along the axis, towards the other shape's side
+    off_axis = rho > round_off
+    radial = jnp.where(off_axis, local * literal_array([1.0, 1.0, 0.0], dtype) / jnp.where(off_axis, rho, 1.0),
+                       literal_array([1.0, 0.0, 0.0], dtype))
+    over_cap = on_cap & (rho <= radius) & (along >= -half)
+    beside = ~on_cap & (jnp.abs(local[2]) <= half)
+    held_gap = jnp.where(over_cap, along - half, rho - radius)
+    held = (over_cap | beside) & (held_gap >= -shallow)
+    held_local = jnp.where(over_cap, cap_sign * literal_array([0.0, 0.0, 1.0], dtype), radial)
+    outward = jnp.where(held, spatial.dot(spatial.transpose(axes), held_local[None, :]), nearest)
+    gap = jnp.where(held, held_gap, gap)
+    return x - gap * outward, outward, gap, nearest
+
+
+def _cylinder_reach(unit, axis, radius, half):
+    """A cylinder's projection radius ``h |n.a| + r |n x a|`` along unit directions ``(m, 3)``."""
+    return half * jnp.abs(spatial.dot(unit, axis[None, :])) + radius * spatial.safe_norm(
+        spatial.cross(unit, axis[None, :]))
+
+
+def _box_reach(unit, axes, half_extents):
+    """A box's projection radius ``sum_i e_i |n.b_i|`` along unit directions ``(m, 3)``."""
+    return spatial.dot(half_extents[None, :], jnp.abs(spatial.dot(unit[:, None, :], axes[None, :, :])))
+
+
+def _best_separating_direction(directions, delta, reach):
+    """The direction (unit, B to A) among ``directions`` ``(m, 3)`` along which A (centre
+    ``delta`` from B's) is farthest out of B, and that separation ``|n.delta| - reach(n)``
+    (m; ``reach``: the two projection radii summed; negative: the overlap along ``n``, a push
+    that frees the shapes). The separation along any direction is at most the signed
+    distance, with equality along the true contact normal. Directions shorter than
     ``sqrt(eps)`` are skipped."""
     length = spatial.safe_norm(directions)
     usable = length > jnp.sqrt(jnp.finfo(delta.dtype).eps)
     unit = directions / jnp.where(usable, length, 1.0)[:, None]
     along = spatial.dot(unit, delta[None, :])
     unit = unit * geo.sign_nonzero(along)[:, None]
-    reach_cylinder = half * jnp.abs(spatial.dot(unit, axis[None, :])) + radius * spatial.safe_norm(
-        spatial.cross(unit, axis[None, :]))
-    reach_box = spatial.dot(half_box[None, :], jnp.abs(spatial.dot(unit[:, None, :], axes_b[None, :, :])))
-    separation = jnp.where(usable, jnp.abs(along) - reach_cylinder - reach_box, -jnp.inf)
+    separation = jnp.where(usable, jnp.abs(along) - reach(unit), -jnp.inf)
     best = jnp.argmax(separation)
     return unit[best], separation[best]
+
+
+#: Rim angles sampled before the search for a rim's point closest to the other cylinder:
+#: its distance along the rim is not convex, so the search starts from the best sample and
+#: refines within one sample's spacing either side.
+RIM_SAMPLES = 16
+
+
+def cylinder_cylinder(
+    cylinder_a: Cylinder,
+    position_a: Float[ArrayLike, "3"],
+    orientation_a: Float[ArrayLike, "4"],
+    cylinder_b: Cylinder,
+    position_b: Float[ArrayLike, "3"],
+    orientation_b: Float[ArrayLike, "4"],
+    margin: float = 0.0,
+) -> Contact:
+    """Two cylinders: ``K = 5``, built as cylinder-box (see the module docstring), with the
+    candidates of each cylinder against the other:
+
+    * the 4 rim points per cap fixed in the body (a square);
+    * per rim, the point closest to the other cylinder: the best of :data:`RIM_SAMPLES`
+      angles, refined by a golden-section search within a sample's spacing and one Newton
+      step (the distance along a rim is not convex);
+    * the side point facing the other's axis, at the closest points of the two axes;
+    * where its centre lies out of the other's caps' slab, its side line lowest towards the
+      other's facing cap, clipped to the part over that cap's disc: its two ends.
+
+    The closest pair of separated cylinders has a point on a rim (a rim's search), inside
+    both sides (the side points), or inside a cap, whose partner is then on the other's rim
+    or its side line or cap (a search, a line's end, a square point over it), so slot 0 is
+    the exact distance while the rim searches find their minima. Overlapping, slot 0 pushes
+    along the best of both axes, their cross product, every candidate's normals and the
+    directions from one rim's searched point to the other's nearest rim point.
+    """
+    position_a, orientation_a = geo.pose("cylinder_cylinder (A)", position_a, orientation_a)
+    position_b, orientation_b = geo.pose("cylinder_cylinder (B)", position_b, orientation_b)
+    geo.check_margin(margin)
+    dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
+    pa, qa, pb, qb = geo.as_float(dtype, position_a, orientation_a, position_b, orientation_b)
+    axes_a, axes_b = geo.body_axes(qa), geo.body_axes(qb)
+    sizes = (cylinder_a.radius, cylinder_a.half_length, cylinder_b.radius, cylinder_b.half_length)
+    scale = spatial.safe_norm(pa - pb) + sum(sizes)
+    round_off = 64 * jnp.finfo(dtype).eps * scale
+    shallow = 0.1 * min(sizes)
+    a = (pa, axes_a, cylinder_a.radius, cylinder_a.half_length)
+    b = (pb, axes_b, cylinder_b.radius, cylinder_b.half_length)
+
+    points_a, valid_a = _cylinder_points(a, b, dtype, round_off)
+    points_b, valid_b = _cylinder_points(b, a, dtype, round_off)
+
+    def of_a(x):  # a point of A against B: A's surface point, the normal (B to A), the gap, the nearest's
+        _, outward, gap, nearest = _held_on_cylinder(x, *b[:4], pa, round_off, shallow)
+        return x, outward, gap, nearest
+
+    def of_b(x):  # a point of B against A
+        point, outward, gap, nearest = _held_on_cylinder(x, *a[:4], pb, round_off, shallow)
+        return point, -outward, gap, -nearest
+
+    surface_a, normal_a, gap_a, nearest_a = jax.vmap(of_a)(points_a)
+    surface_b, normal_b, gap_b, nearest_b = jax.vmap(of_b)(points_b)
+    surface = jnp.concatenate([surface_a, surface_b])
+    normal = jnp.concatenate([normal_a, normal_b])
+    gap = jnp.concatenate([gap_a, gap_b])
+    chosen, found = _spread_slots(surface, gap, jnp.concatenate([valid_a, valid_b]), margin, 1e-3 * min(sizes))
+
+    # From each rim's searched point (rows 8, 9) to the other's nearest rim point (two rims
+    # that touch), and perpendicular to both rims there (two rims that cross).
+    def across(x, this, other):
+        rim = _nearest_rim_point(x, *other)
+        return jnp.stack([x - rim, spatial.cross(spatial.cross(this[1][2], x - this[0]),
+                                                 spatial.cross(other[1][2], rim - other[0]))])
+
+    rims_across = jnp.concatenate([jax.vmap(lambda x: across(x, a, b))(points_a[8:10]).reshape(4, 3),
+                                   jax.vmap(lambda x: across(x, b, a))(points_b[8:10]).reshape(4, 3)])
+    directions = jnp.concatenate([axes_a[2:], axes_b[2:], spatial.cross(axes_a[2], axes_b[2])[None, :], normal,
+                                  nearest_a, nearest_b, rims_across])
+    push_normal, push_gap = _best_separating_direction(
+        directions, pa - pb, lambda n: _cylinder_reach(n, axes_a[2], *a[2:]) + _cylinder_reach(n, axes_b[2], *b[2:]))
+    return _with_push(surface[chosen], normal[chosen], gap[chosen], found, push_normal, push_gap, round_off, scale,
+                      margin)
+
+
+def _cylinder_points(this, other, dtype, round_off):
+    """The candidate points of cylinder ``this`` against cylinder ``other`` (each
+    ``(centre, axes, radius, half)``): ``(13, 3)`` (the two rims' squares, the two rims'
+    searched points, the side point facing the other's axis, the two ends of the line over
+    the other's cap) and which are valid ``(13,)``."""
+    centre, axes, radius, half = this
+    other_centre, other_axes, other_radius, other_half = other
+    x_axis, y_axis, axis = axes
+    caps = literal_array([[1.0], [-1.0]], dtype) * (half * axis[None, :])  # (2, 3)
+    angles = literal_array(_SQUARE, dtype)
+    square = jnp.cos(angles)[:, None] * x_axis[None, :] + jnp.sin(angles)[:, None] * y_axis[None, :]
+    rims = (centre[None, None, :] + caps[:, None, :] + radius * square[None, :, :]).reshape(8, 3)
+
+    def distance(x):  # to the other cylinder (m)
+        return ball_cylinder_contact(x, 0.0, other_centre, other_axes, other_radius, other_half)[2]
+
+    def rim_point(cap, theta):
+        return centre + cap + radius * (jnp.cos(theta) * x_axis + jnp.sin(theta) * y_axis)
+
+    spacing = 2 * np.pi / RIM_SAMPLES
+
+    def search(cap):
+        samples = spacing * jnp.arange(RIM_SAMPLES, dtype=dtype)
+        start = samples[jnp.argmin(jax.lax.stop_gradient(jax.vmap(lambda t: distance(rim_point(cap, t)))(samples)))]
+
+        def gap(phi):
+            return distance(rim_point(cap, start + phi))
+
+        phi = _closest_point(lambda p: jax.lax.stop_gradient(gap(p)), spacing, dtype)
+        return rim_point(cap, start + _newton_step(gap, phi, spacing))
+
+    searched = jax.vmap(search)(caps)  # (2, 3)
+
+    # The side point facing the other's axis, at the axes' closest points.
+    s, t = geo.closest_between_segments(centre, axis, half, other_centre, other_axes[2], other_half)
+    core = centre + s * axis
+    towards = other_centre + t * other_axes[2] - core
+    towards = towards - spatial.dot(towards, axis) * axis
+    length = spatial.safe_norm(towards)
+    facing = core + radius * jnp.where(length > round_off, towards / jnp.where(length > round_off, length, 1.0),
+                                       x_axis)
+
+    # The side line lowest towards the other's facing cap, over that cap's disc.
+    local_centre = spatial.dot(other_axes, (centre - other_centre)[None, :])
+    cap_normal = geo.sign_nonzero(local_centre[2]) * other_axes[2]
+    tilt = cap_normal - spatial.dot(cap_normal, axis) * axis
+    lowest = centre - radius * tilt / jnp.maximum(spatial.safe_norm(tilt), TILT_RAMP)
+    enter, leave = geo.disc_interval(spatial.dot(other_axes, (lowest - other_centre)[None, :]),
+                                     spatial.dot(other_axes, axis[None, :]), other_radius, half)
+    low, high = jnp.maximum(-half, enter), jnp.minimum(half, leave)
+    line_valid = (low <= high) & (jnp.abs(local_centre[2]) > other_half)
+    ends = lowest[None, :] + jnp.stack([low, high])[:, None] * axis[None, :]
+
+    # As in cylinder-box, a square point near its rim's lowest point towards the other (its
+    # facing cap, or its axis where this lies beside it) is left out.
+    beside = spatial.safe_norm(local_centre[:2]) - other_radius > jnp.abs(local_centre[2]) - other_half
+    rest = jnp.where(beside, -towards, tilt)  # from this cylinder's centre away from the other
+    rest = rest - spatial.dot(rest, axis) * axis
+    square_valid = spatial.safe_norm(square + (rest / jnp.maximum(spatial.safe_norm(rest), TILT_RAMP))[None, :]) >= 0.9
+    points = jnp.concatenate([rims, searched, facing[None, :], ends])
+    valid = jnp.concatenate([jnp.tile(square_valid, 2), jnp.ones(3, bool), jnp.stack([line_valid, line_valid])])
+    return points, valid

@@ -17,7 +17,7 @@ from ..shapes import Box, Capsule, Cylinder, Plane, Shape, Sphere
 from ._box import box_box
 from ._capsule import capsule_box, capsule_capsule, capsule_cylinder
 from ._contact import Contact
-from ._cylinder import cylinder_box
+from ._cylinder import cylinder_box, cylinder_cylinder
 from ._geometry import check_unit_quaternion
 from ._plane import box_plane, capsule_plane, cylinder_plane, sphere_plane
 from ._sphere import sphere_box, sphere_capsule, sphere_cylinder, sphere_sphere
@@ -49,6 +49,7 @@ _PAIRS: dict[tuple[type, type], tuple[Callable[..., Contact], int]] = {
     (Capsule, Box): (capsule_box, 2),
     (Capsule, Cylinder): (capsule_cylinder, 2),
     (Cylinder, Box): (cylinder_box, 5),
+    (Cylinder, Cylinder): (cylinder_cylinder, 5),
     (Box, Box): (box_box, 4),
 }
 

@@ -164,3 +164,28 @@ def slab_intervals(
     enter = jnp.where(moving, jnp.min(ends, 0), jnp.where(inside, -half_length, half_length))
     leave = jnp.where(moving, jnp.max(ends, 0), jnp.where(inside, half_length, -half_length))
     return enter, leave
+
+
+def disc_interval(
+    centre: Float[Array, "3"], direction: Float[Array, "3"], radius, half_length
+) -> tuple[Array, Array]:
+    """Where a segment ``centre + s direction``, ``|s| <= half_length``, lies over a disc of
+    ``radius`` about the z axis (``x^2 + y^2 <= radius^2``; a cylinder's frame): the bounds
+    ``(enter, leave)`` of ``s`` before clipping to the segment, the roots of a quadratic. A
+    segment along the axis (to ``eps``) is over it entirely or not at all; one that misses
+    the disc gets the empty ``(half, -half)``."""
+    eps = jnp.finfo(centre.dtype).eps
+    a = direction[0] ** 2 + direction[1] ** 2
+    b = centre[0] * direction[0] + centre[1] * direction[1]
+    c = centre[0] ** 2 + centre[1] ** 2 - radius**2
+    discriminant = b * b - a * c
+    tilted = a > eps  # not parallel to the axis
+    crosses = discriminant > 0
+    root = jnp.where(crosses, jnp.sqrt(jnp.where(crosses, discriminant, 1.0)), 0.0)
+    a_safe = jnp.where(tilted, a, 1.0)
+    over = c <= 0  # a segment parallel to the axis: all of it or none
+    enter = jnp.where(tilted, jnp.where(crosses, (-b - root) / a_safe, half_length),
+                      jnp.where(over, -half_length, half_length))
+    leave = jnp.where(tilted, jnp.where(crosses, (-b + root) / a_safe, -half_length),
+                      jnp.where(over, half_length, -half_length))
+    return enter, leave
