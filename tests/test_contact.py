@@ -129,7 +129,7 @@ def test_slot_values_are_each_slots_pair_entry():
 def test_bad_contact_declarations_are_refused(kwargs, message):
     bodies = [rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=BOX, mass=1.0),
               rb.Body("c", shape=rb.Capsule(0.05, 0.2), mass=1.0), rb.Body("d", mass=1.0, inertia=(1, 1, 1)),
-              rb.Body("e", shape=rb.Cylinder(0.1, 0.1), mass=1.0)]
+              rb.Body("e", shape=rb.Cone(0.1, 0.2), mass=1.0)]  # a cone collides with nothing
     kwargs = {"ground": rb.Plane(), **kwargs}
     with pytest.raises(ValueError, match=message):
         rb.Scene(bodies, **kwargs)
@@ -1133,13 +1133,15 @@ def test_cans_stand_and_roll_on_a_box(dtype):
     np.testing.assert_allclose(position[:, 3, 2], 0.15, atol=1e-6)
 
 
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
-def test_a_tower_of_cans_and_a_can_across_a_log_hold_still(dtype):
+def test_a_tower_of_cans_and_a_can_across_a_log_hold_still():
     """Cylinder-cylinder contacts in a scene: three cans of different sizes standing on one
     another on the ground (0.6, 0.4 and 0.2 kg; the upper ones a little off centre), and a
     can lying across a log that lies on the ground, mu = 0.3, dt = 1 ms, 0.6 s. Every body
-    stays within 2e-5 m of its start (measured 3.2e-6, the top can; 6.6e-6 in float32).
-    Until 2026-12-01 two cylinders passed through each other."""
+    stays within 2e-5 m of its start (measured 3.2e-6, the top can; float32, run once with a
+    scratch script, 6.6e-6: not run here, where it took 105 s, as the float32 narrow phase
+    and the float32 can-on-box scene are). Until 2026-12-01 two cylinders passed through
+    each other."""
+    dtype = jnp.float64
     sizes = {"c1": (0.06, 0.08, 0.6), "c2": (0.05, 0.1, 0.4), "c3": (0.04, 0.05, 0.2), "log": (0.05, 0.15, 0.5),
              "roller": (0.05, 0.1, 0.5)}
     bodies = [rb.Body(name, shape=rb.Cylinder(r, h), mass=m) for name, (r, h, m) in sizes.items()]
