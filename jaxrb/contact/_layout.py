@@ -28,7 +28,8 @@ from ..scene import Scene
 from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import State
 
-__all__ = ["Layout", "build_layout", "detect", "pair_separations", "slot_values"]
+__all__ = ["Layout", "bodies_with_slots", "build_layout", "detect", "pair_separations", "slot_values",
+           "with_pair_slots"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,6 +195,38 @@ def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:
     pad = len(pair)
     padded_slots = [slots[p] + [pad] * (depth - len(slots[p])) for p in pairs]
     return tuple(tuple(tuple(padded_slots[i]) for i in c) + ((pad,) * depth,) * (width - len(c)) for c in colours)
+
+
+def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
+    """Per group, whether each of its pairs has a slot in ``mask`` ``(C,)``: ``(P_g,)`` bool.
+
+    Each group's slots are its pairs' ``K`` slots in a row (static slices, a reshape)."""
+    parts, start = [], 0
+    for g in layout.groups:
+        count = len(g.pair_index) * g.slots
+        parts.append(jnp.any(mask[start:start + count].reshape(len(g.pair_index), g.slots), axis=-1))
+        start += count
+    return parts
+
+
+def with_pair_slots(layout: Layout, mask: jax.Array) -> jax.Array:
+    """``(C,)`` bool: the slots of every pair that has a slot in ``mask`` ``(C,)``."""
+    parts = [jnp.broadcast_to(rows[:, None], (rows.shape[0], g.slots)).reshape(-1)
+             for g, rows in zip(layout.groups, _any_per_pair(layout, mask), strict=True)]
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+
+
+def bodies_with_slots(layout: Layout, mask: jax.Array) -> jax.Array:
+    """``(N,)`` bool: the bodies that have a slot in ``mask`` ``(C,)``.
+
+    By static slices of the per-pair reduction (no scatter, and no index table: built as
+    literals, a 60-slot table took 300 lines of StableHLO at each use)."""
+    pairs = jnp.concatenate(_any_per_pair(layout, mask))  # group order
+    body_a = [a for g in layout.groups for a in g.body_a]
+    body_b = [b for g in layout.groups for b in g.body_b]
+    rows = [[i for i, ab in enumerate(zip(body_a, body_b, strict=True)) if body in ab]
+            for body in range(layout.num_bodies)]
+    return jnp.stack([jnp.any(take_rows(pairs, r)) if r else jnp.zeros((), bool) for r in rows])
 
 
 def slot_values(layout: Layout, per_pair: jax.Array) -> jax.Array:

@@ -343,7 +343,8 @@ def _collision_update(c: _Colour, v, k, e, mu, eligible, threshold):
 
 
 def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, update, iterations: int,
-                   tolerance: float | None = None, early_exit: bool = False, recompute: bool = False):
+                   tolerance: float | None = None, early_exit: bool = False, recompute: bool = False,
+                   idle=None):
     """At most ``iterations`` sweeps of ``update`` over the colours. ``slot_data`` are per-slot
     arrays ``(C + 1, ...)`` read by the update, ``per_slot`` ``(C + 1, 3)`` the one it rewrites.
 
@@ -357,7 +358,8 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     step; each skipped one cost it a ``cond``, copies of its operands and the test, 133
     kernels a step in all (benchmarks/README.md, "The stack's sweeps"). With ``recompute``,
     reverse mode keeps each sweep's input only (``branch``'s ``recompute_in_reverse``),
-    not the residuals of the sweep (zero-filled for a skipped one).
+    not the residuals of the sweep (zero-filled for a skipped one). ``idle`` (bool scalar,
+    with a ``tolerance``): nothing to do, every sweep skipped.
     Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
     idx = jnp.asarray(colours)
@@ -408,7 +410,7 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         return twist, new, count + 1, converged(new, values)
 
     twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)
-    start = (twist, per_slot[idx], jnp.zeros((), jnp.int32), jnp.zeros((), bool))
+    start = (twist, per_slot[idx], jnp.zeros((), jnp.int32), jnp.zeros((), bool) if idle is None else idle)
     if early_exit and tolerance is not None:
         twist, values, count, _ = jax.lax.while_loop(lambda x: (x[2] < iterations) & ~x[3], next_sweep, start)
     else:
@@ -605,7 +607,8 @@ def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible
 
     twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)
     total = jnp.zeros((*idx.shape, 3), twist.dtype)
-    (twist, total, _), _ = jax.lax.scan(sweep, (twist, total, jnp.zeros((), bool)), None, length=iterations)
+    # No eligible slot (the plastic pass of an impact on bodies that rest on nothing): no sweep.
+    (twist, total, _), _ = jax.lax.scan(sweep, (twist, total, ~jnp.any(eligible)), None, length=iterations)
     bodies = eqx.tree_at(lambda x: (x.velocity, x.angular_velocity), bodies, (twist[:, :3], twist[:, 3:]))
     # Back to slot order; the padding entries (all C) carry zeros.
     per_slot = jnp.zeros((e.shape[0], 3), twist.dtype).at[idx.reshape(-1)].add(total.reshape(-1, 3))
@@ -642,7 +645,7 @@ def _slot_collisions(bodies: Bodies, f: Frames, colours, e, mu, eligible, thresh
     # derivative does not cross them, and the 3-box stack's reverse pass ran 2.6% more
     # kernels with it.)
     bodies, total, _ = _colour_sweeps(bodies, f, colours, (f.delassus, e, mu, eligible), total, update, iterations, 0.0,
-                                      recompute=True)
+                                      recompute=True, idle=~jnp.any(eligible))
     return bodies, total[:-1]
 
 
