@@ -1163,6 +1163,17 @@ def test_bad_inputs_fail_early():
         collision.collide(sphere, np.zeros(3), np.zeros(3), sphere, np.zeros(3), IDENTITY)
     with pytest.raises(ValueError, match="margin"):
         collision.collide(sphere, np.zeros(3), IDENTITY, sphere, np.zeros(3), IDENTITY, margin=-0.1)
+    # The cylinder pairs (added on 2026-12-01) check the same, in either order.
+    can, tilted = Cylinder(0.1, 0.2), np.array([1.0, 1.0, 0.0, 0.0])
+    for other in (Box((0.1, 0.2, 0.3)), Cylinder(0.2, 0.1)):
+        with pytest.raises(ValueError, match="position must have shape"):
+            collision.collide(can, np.zeros(2), IDENTITY, other, np.ones(3), IDENTITY)
+        with pytest.raises(ValueError, match="orientation_b is not a unit quaternion"):
+            collision.collide(can, np.zeros(3), IDENTITY, other, np.ones(3), tilted)
+        with pytest.raises(ValueError, match="orientation_a is not a unit quaternion"):
+            collision.collide(other, np.ones(3), tilted, can, np.zeros(3), IDENTITY)
+        with pytest.raises(ValueError, match="margin"):
+            collision.collide(other, np.ones(3), IDENTITY, can, np.zeros(3), IDENTITY, margin=-1.0)
 
 
 def test_a_non_unit_quaternion_is_refused():
