@@ -372,7 +372,7 @@ def _pair_gaps(ctx: _Ctx, state: State) -> jax.Array:
     return pair_separations(ctx.scene, ctx.layout, state, ctx.margin)
 
 
-def _free_pose(params: Params, state: State, flight, t) -> State:
+def _free_pose(state: State, flight, t) -> State:
     """Pose after ``t`` seconds of the motion :func:`_free_flight` predicts: constant
     acceleration from its initial velocity, constant spin."""
     velocity, acceleration, omega = flight
@@ -417,7 +417,7 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, 
 
     def distance(tau, theta):
         params, state, flight, candidate = theta
-        gaps = _pair_gaps(ctx, _free_pose(params, state, flight, tau * ctx.dt))
+        gaps = _pair_gaps(ctx, _free_pose(state, flight, tau * ctx.dt))
         return jnp.min(jnp.where(candidate, gaps, big))
 
     theta = (params, state, flight, candidate)
@@ -497,7 +497,7 @@ def _branch_test(ctx: _Ctx, params: Params, state: State):
     if settings.time_of_impact:
         flight = _free_flight(ctx, frozen_params, frozen_state)
         ends = jnp.stack([jnp.zeros((), dtype), jnp.asarray(dt, dtype)])
-        both = jax.vmap(lambda t: _pair_gaps(ctx, _free_pose(frozen_params, frozen_state, flight, t)))(ends)
+        both = jax.vmap(lambda t: _pair_gaps(ctx, _free_pose(frozen_state, flight, t)))(ends)
         start_sep, end_sep = checkpoint_name(both, SEPARATIONS)
         candidate = (start_sep > settings.penetration_slop) & (end_sep < 0)
     else:
