@@ -403,7 +403,7 @@ def _free_flight(ctx: _Ctx, params: Params, state: State):
     return velocity, jnp.where(held, 0.0, acceleration), angular_velocity(params, state)
 
 
-def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, start_gap, end_gap) -> jax.Array:
+def _time_of_impact(ctx: _Ctx, state: State, flight, candidate, start_gap, end_gap) -> jax.Array:
     """Fraction ``tau`` in ``[0, 1]`` of the step at which a candidate pair first touches.
 
     ``flight`` is :func:`_free_flight` at ``state``. ``start_gap > 0`` and ``end_gap < 0``
@@ -416,11 +416,11 @@ def _time_of_impact(ctx: _Ctx, params: Params, state: State, flight, candidate, 
     big = float(jnp.finfo(dtype).max / 4)  # a Python float: ``distance`` must capture no tracer
 
     def distance(tau, theta):
-        params, state, flight, candidate = theta
+        state, flight, candidate = theta
         gaps = _pair_gaps(ctx, _free_pose(state, flight, tau * ctx.dt))
         return jnp.min(jnp.where(candidate, gaps, big))
 
-    theta = (params, state, flight, candidate)
+    theta = (state, flight, candidate)
     frozen_theta = jax.lax.stop_gradient(theta)
 
     def illinois(carry, _):
@@ -635,7 +635,7 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
     # Checkpointed branches (here and for the impacts): a cond's linearisation zero-fills the
     # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
-    search = jax.checkpoint(lambda: _time_of_impact(ctx, params, state, flight, candidate, start_gap, end_gap),
+    search = jax.checkpoint(lambda: _time_of_impact(ctx, state, flight, candidate, start_gap, end_gap),
                             policy=SAVE_NAMED)
     tau = branch(any_hit, search, lambda: jnp.ones((), dtype))
     lengths = jnp.stack([tau, 1.0 - tau]) * dt
