@@ -7,6 +7,8 @@ build float32 params and states explicitly (``dtype=jnp.float32``).
 import gc
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -14,6 +16,36 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+#: XLA:CPU's fusions through its older (LLVM IR) emitters. The suite's time is mostly
+#: compilation, which these emitters do faster; the programs and their results are XLA's
+#: either way (no fast math in either). Measured side by side (2026-12-02, jaxlib 0.10.2,
+#: this 2-core machine): six of the slowest contact and gradient tests took 122 s instead of
+#: 160 (205 CPU-seconds instead of 266); the 5-box stack's 200-step program compiled in
+#: 6.0 s instead of 7.3 and ran 6% faster, the bouncing ball's in 2.6 s instead of 3.6
+#: and ran 33% slower (benchmarks/README.md, "The test suite's XLA flag"). Set
+#: JAXRB_TEST_XLA_DEFAULTS=1 to run the suite on XLA's defaults. A jaxlib that does not
+#: know the flag aborts every process given it, so it is tried first in a subprocess.
+_FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def _fast_compile_flag_works() -> bool:
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip())
+    probe = "import jax, jax.numpy as jnp; jax.block_until_ready(jax.jit(jnp.sin)(1.0))"
+    try:
+        return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                              timeout=120).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+# Decided once, in the process that starts the run: the pytest-xdist workers and the
+# subprocesses of the tests inherit the environment (JAXRB_TEST_XLA_FLAG_TRIED marks it).
+if (not os.environ.get("JAXRB_TEST_XLA_DEFAULTS") and "JAXRB_TEST_XLA_FLAG_TRIED" not in os.environ
+        and _FAST_COMPILE_FLAG not in os.environ.get("XLA_FLAGS", "")):
+    os.environ["JAXRB_TEST_XLA_FLAG_TRIED"] = "1"
+    if _fast_compile_flag_works():
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip()
 
 # One XLA compilation cache for the whole run, shared through the environment by the
 # pytest-xdist workers and by the subprocesses the tests start (examples, notebooks,
