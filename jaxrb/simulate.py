@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import warnings
 from collections.abc import Callable
 
 import equinox as eqx
@@ -171,33 +170,8 @@ def make_step(
         contact = ContactSettings()
     if not isinstance(contact, ContactSettings):
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")
-    if scene.contact_pairs:
-        _warn_if_threshold_is_under_the_stagger(scene, contact, dt)
     return Step(scene=scene, integrator=integrator, dt=dt, debug=debug, contact=contact,
                 max_penetration=_penetration_limit(scene, debug, max_penetration))
-
-
-def _warn_if_threshold_is_under_the_stagger(scene: Scene, contact: ContactSettings, dt: float) -> None:
-    """Warn where the restitution threshold is under |g| dt / 2, the velocity a body resting
-    on the ground reports between steps (leapfrog's staggered velocity, not a motion).
-
-    An impact next to a resting body then sees that velocity as an approach faster than
-    the threshold and gives it Newton's law: a 0.5 kg box dropped on a 1000 kg table resting
-    on the ground (e = 0.8) rebounded 5.4% higher than the two-body closed form allows at
-    threshold 0.01 m/s and dt = 10 ms (0.23% at 0.001 m/s and 1 ms). Known, not yet fixed.
-    """
-    if scene.gravity is None:
-        return
-    stagger = 0.5 * dt * math.hypot(*scene.gravity)
-    if contact.restitution_threshold < stagger:
-        warnings.warn(
-            f"ContactSettings(restitution_threshold={contact.restitution_threshold:g}) m/s is under |g| dt / 2 = "
-            f"{stagger:.3g} m/s, the velocity a resting body reports between steps of dt = {dt:g} s. An impact "
-            f"next to a resting body then bounces it on that velocity, which adds energy (a box dropped on a "
-            f"resting table rebounded 5.4% too high at 0.01 m/s and dt = 10 ms). Use a threshold above "
-            f"{stagger:.3g} m/s, or a smaller dt.",
-            stacklevel=3,
-        )
 
 
 def _penetration_limit(scene: Scene, debug: bool, max_penetration) -> float:
