@@ -18,12 +18,11 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 #: XLA:CPU's fusions through its older (LLVM IR) emitters. The suite's time is mostly
-#: compilation, which these emitters do faster; the programs and their results are XLA's
-#: either way (no fast math in either). Measured side by side (2026-12-02, jaxlib 0.10.2,
-#: this 2-core machine): six of the slowest contact and gradient tests took 122 s instead of
-#: 160 (205 CPU-seconds instead of 266); the 5-box stack's 200-step program compiled in
-#: 6.0 s instead of 7.3 and ran 6% faster, the bouncing ball's in 2.6 s instead of 3.6
-#: and ran 33% slower (benchmarks/README.md, "The test suite's XLA flag"). Set
+#: compilation, which these emitters did faster here: six of the slowest contact and
+#: gradient tests took 16-37% less time in each of three pairs of runs side by side
+#: (2026-12-02, jaxlib 0.10.2, 2 cores; benchmarks/README.md, "The test suite's XLA flag",
+#: where single programs that it compiles more slowly are listed too). The programs are
+#: the same HLO, with no fast math in either emitter. jaxrb itself sets no flag. Set
 #: JAXRB_TEST_XLA_DEFAULTS=1 to run the suite on XLA's defaults. A jaxlib that does not
 #: know the flag aborts every process given it, so it is tried first in a subprocess.
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
