@@ -28,8 +28,9 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
-def _fast_compile_flag_works() -> bool:
-    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip())
+def _fast_compile_flag_works(flags: str) -> bool:
+    """Whether a process given ``XLA_FLAGS=flags`` starts JAX and runs a program."""
+    env = dict(os.environ, XLA_FLAGS=flags)
     probe = "import jax, jax.numpy as jnp; jax.block_until_ready(jax.jit(jnp.sin)(1.0))"
     try:
         return subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
@@ -43,8 +44,9 @@ def _fast_compile_flag_works() -> bool:
 if (not os.environ.get("JAXRB_TEST_XLA_DEFAULTS") and "JAXRB_TEST_XLA_FLAG_TRIED" not in os.environ
         and _FAST_COMPILE_FLAG not in os.environ.get("XLA_FLAGS", "")):
     os.environ["JAXRB_TEST_XLA_FLAG_TRIED"] = "1"
-    if _fast_compile_flag_works():
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip()
+    _flags = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE_FLAG}".strip()
+    if _fast_compile_flag_works(_flags):
+        os.environ["XLA_FLAGS"] = _flags
 
 # One XLA compilation cache for the whole run, shared through the environment by the
 # pytest-xdist workers and by the subprocesses the tests start (examples, notebooks,

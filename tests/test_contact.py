@@ -1315,9 +1315,9 @@ def test_a_bouncy_stack_holds_at_a_restitution_threshold_under_the_resting_stagg
     between steps (leapfrog's stagger), which the threshold must not take for an approach.
     After the first 0.1 s (cold-started sweeps let the stack settle: up to 0.019 m/s, 0.023
     at the default threshold) no box moves faster than that velocity, to 1e-3 relative
-    (measured 5e-5; 1.1e-4 at the default threshold), and the top box stays within 0.1 mm
+    (measured 5.2e-5; 1.3e-4 at the default threshold), and the top box stays within 0.1 mm
     for 5 s (measured 3.1e-5 m; 6.4e-5 at the default threshold, where the PGS sweeps' own
-    error is the drift). A first fix of the table test's bug above (2026-12-01, not kept)
+    error is the drift). A first fix of the table test's bug above (2026-12-02, not kept)
     discounted the stagger on every slot, held or not, and made this stack micro-bounce:
     0.19 mm, at up to 0.0069 m/s."""
     scene, params, state = stack(5, pairs="all")

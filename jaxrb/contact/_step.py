@@ -195,12 +195,12 @@ class _Ctx:
         return self.settings.margin_for(self.dt)
 
 
-def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=True, held=None) -> State:
+def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bounce=True) -> State:
     """Kick, solve, drift, kick over ``h`` (a traced length when the step is split).
 
-    ``held`` ``(C,)``: the slots that the last full step's resting solve pushed on (a
-    positive normal impulse; default: those of ``lam0``). Their approach at the start
-    is leapfrog's staggered velocity, which the restitution threshold must not see."""
+    ``held`` ``(C,)``: the slots that the last full step's resting solve pushed on
+    (:func:`_held_slots`). Their approach at the start is leapfrog's staggered velocity,
+    which the restitution threshold must not see."""
     scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
     h = jnp.maximum(h, 1e-6 * ctx.dt)  # a zero-length remainder must not divide by zero
     half = 0.5 * h
@@ -228,7 +228,6 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=T
     # threshold of |g| dt / 2 a table resting on the ground bounced on it when a box hit the
     # table, and the box rebounded 5.4% above the two-body closed form (0.01 m/s, dt = 10 ms).
     # Slots that were not held (a corner landing, a body arriving) are compared as they are.
-    held = lam0[:, 0] > 0 if held is None else held
     stagger = (u_kicked - u_start) * (ctx.dt / h)
     approach = jnp.where(held, u_start - stagger, u_start)
     fast = closing & (approach < -settings.restitution_threshold)
@@ -323,14 +322,14 @@ def _free_step(ctx: _Ctx, params: Params, state: State, derived, h=None) -> Stat
     return dataclasses.replace(end, contact_impulse=jnp.zeros_like(state.contact_impulse))
 
 
-def _rematerialised(ctx: _Ctx, params: Params, state: State, h, lam0, derived, bounce=True, held=None) -> State:
+def _rematerialised(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bounce=True) -> State:
     """:func:`_regular` under ``jax.checkpoint``: reverse mode recomputes the sub-step
     instead of storing its intermediates (every solver sweep's). Measured on the 1000-step
     bouncing ball (``benchmarks/gradients.py``'s scene): the gradient ran in 292 ms instead
     of 643 and compiled in 29 s instead of 47, with the same value to the last digit. The
     solvers' solutions (named ``SOLUTION``) are kept, so the recomputation does not run
     their sweeps again."""
-    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, bounce, held),
+    return jax.checkpoint(lambda s: _regular(ctx, params, s, h, lam0, derived, held, bounce),
                           policy=SAVE_NAMED)(state)
 
 
@@ -395,6 +394,12 @@ def _free_pose(state: State, flight, t) -> State:
     return dataclasses.replace(state, position=position, orientation=orientation, rotation=None)
 
 
+def _held_slots(state: State) -> jax.Array:
+    """The slots ``(C,)`` that the last step's resting solve pushed on: a positive normal
+    impulse in ``state.contact_impulse``."""
+    return state.contact_impulse[:, 0] > 0
+
+
 def _free_flight(ctx: _Ctx, params: Params, state: State):
     """The motion over a step that the time-of-impact search assumes: each body's initial
     velocity, constant acceleration and spin ``(N, 3)`` each.
@@ -412,7 +417,7 @@ def _free_flight(ctx: _Ctx, params: Params, state: State):
     """
     force, _ = wrench(ctx.scene, params, state)
     acceleration = linear_acceleration(params, force)
-    held = bodies_with_slots(ctx.layout, state.contact_impulse[:, 0] > 0)[:, None]
+    held = bodies_with_slots(ctx.layout, _held_slots(state))[:, None]
     velocity = jnp.where(held, state.velocity - 0.5 * ctx.dt * acceleration, state.velocity)
     return velocity, jnp.where(held, 0.0, acceleration), angular_velocity(params, state)
 
@@ -634,8 +639,11 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     separations at both ends of the step's free flight ``(P,)``, m."""
     dt = ctx.dt
     lam0 = state.contact_impulse
+    # Held by the step's start (the impulses of the step before), not by a split step's first
+    # part: that part's speculative contact may push on the pair that is about to collide.
+    held = _held_slots(state)
     if candidate is None:
-        return _rematerialised(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived)
+        return _rematerialised(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived, held)
     flight = _free_flight(ctx, params, state)
 
     # Split the step at the impact: [0, tau h], then [tau h, h], which starts with the
@@ -644,9 +652,6 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     # zero length is skipped (at run time; in an ensemble, when every member's is). At
     # tau = 1 the impact is the next step's, at its start.
     any_hit = jnp.any(candidate)
-    # Held by the step's start (the impulses of the step before), not by the first part's
-    # solve: that part's speculative contact may push on the pair that is about to collide.
-    held = lam0[:, 0] > 0
     dtype = state.position.dtype
     start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
     end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
@@ -677,7 +682,7 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
             return branch(
                 (index == 0) & any_hit & clear,
                 jax.checkpoint(lambda s: _free_step(ctx, params, s, derived, h)),
-                lambda s: _rematerialised(ctx, params, s, h, lam, derived, bounce, held),
+                lambda s: _rematerialised(ctx, params, s, h, lam, derived, held, bounce),
                 s)
 
         state = branch(
