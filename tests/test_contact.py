@@ -1313,20 +1313,22 @@ def test_a_bouncy_stack_holds_at_a_restitution_threshold_under_the_resting_stagg
     """Five boxes resting on one another on the ground, e = 0.8, h = 1 ms, restitution
     threshold 0.001 m/s: under |g| h / 2 = 0.0049 m/s, the velocity a resting box reports
     between steps (leapfrog's stagger), which the threshold must not take for an approach.
-    After the first 0.1 s (cold-started sweeps let the stack settle: up to 0.019 m/s, 0.023
-    at the default threshold) no box moves faster than that velocity, to 1e-3 relative
-    (measured 5.2e-5; 1.3e-4 at the default threshold), and the top box stays within 0.1 mm
-    for 5 s (measured 3.1e-5 m; 6.4e-5 at the default threshold, where the PGS sweeps' own
-    error is the drift). A first fix of the table test's bug above (2026-12-02, not kept)
-    discounted the stagger on every slot, held or not, and made this stack micro-bounce:
-    0.19 mm, at up to 0.0069 m/s."""
+    After the first 0.1 s no box moves faster than that velocity, to 1e-3 relative (measured
+    5.1e-5), and the top box stays within 0.1 mm for 5 s (measured 4.4e-6 m). A first fix
+    of the table test's bug above (2026-12-02, not kept) discounted the stagger on every
+    slot, held or not, and made this stack micro-bounce: 0.19 mm, at up to 0.0069 m/s.
+    In the first 0.1 s no box moves faster than 1.5 times it (measured 1.35, in the first
+    two steps, from the sweeps' cold start): until box-box contacts preferred faces over
+    edge axes that beat them by a hair (jaxrb.collision._box.EDGE_PREFERENCE), three pairs
+    at a time fell to one contact point and the boxes jolted to 0.019 m/s (drift 3.1e-5 m)."""
     scene, params, state = stack(5, pairs="all")
     params = params.replace(restitution=jnp.full_like(params.restitution, 0.8))
     step = rb.make_step(scene, SPLIT, 1e-3, contact=rb.ContactSettings(restitution_threshold=1e-3))
     _, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, 5000))(params, state)
     drift = np.linalg.norm(np.asarray(traj.position[:, 4]) - np.asarray(state.position[4]), axis=-1)
-    speed = np.abs(np.asarray(traj.velocity[100:])).max()
-    assert speed <= 1.001 * G * 1e-3 / 2
+    speed = np.abs(np.asarray(traj.velocity)).max(axis=(1, 2))
+    assert speed[:100].max() <= 1.5 * G * 1e-3 / 2
+    assert speed[100:].max() <= 1.001 * G * 1e-3 / 2
     assert drift.max() <= 1e-4
 
 
