@@ -53,7 +53,7 @@ _MAX_POLYGON = 8  # a quad clipped by 4 half-planes gains at most one vertex per
 #: half-extent (and by round-off) to give the one-point edge contact. Where two equal boxes
 #: rest one on the other, their edges lie over each other, and under a small relative tilt
 #: the axes of crossing edges beat the face normal in exact arithmetic: a cube tilted by
-#: 3e-3 rad with its lowest corner 10 um into an equal one, by up to 0.36 of that depth.
+#: 3e-3 rad with its lowest corner 10 um into an equal one, by up to 0.057 of that depth.
 #: With a round-off tolerance alone, a 5-box stack tilted by ~1e-6 rad after its first
 #: step had three of its four box-box pairs reduced to one point, and jolted to 0.023 m/s
 #: in its first five steps. While the boxes overlap every axis's separation is negative,
@@ -61,7 +61,7 @@ _MAX_POLYGON = 8  # a quad clipped by 4 half-planes gains at most one vertex per
 #: always face contacts, and a face manifold kept over an edge axis overstates the depth
 #: by this much at most (0.1 mm for cubes of half-extent 0.1 m). The smallest margin by
 #: which an edge axis won among 256 random poses of a box and a crate (the sampler of
-#: tests/test_collision.py, seeds 0 to 3, 64 each) was 2e-3 of the box's least
+#: tests/test_collision.py, seeds 0 to 3, 64 each) was 1.9e-3 of the box's least
 #: half-extent, 0.2 m.
 EDGE_PREFERENCE = 1e-3
 
