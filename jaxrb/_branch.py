@@ -116,12 +116,18 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
         def linearised(take):
             def run(o, c, o_dot, c_dot):
-                # The cond of both branches with a constant predicate, not the taken branch
-                # alone: the same values, but the ball's gradient ran 6-9% faster this way
-                # (6.62 and 6.53 against 7.02 ms, minima of 60 in alternating processes; jax
-                # 0.10.2, XLA:CPU), though its program is 16% larger. Why is not known: XLA
-                # removes the dead branch, so the difference is in how it compiles the rest.
-                return jax.jvp(lambda o, c: evaluate(jnp.asarray(take), o, c), (o, c), (o_dot, c_dot))
+                # The taken branch alone (until 2026-12-02, a cond of both with a constant
+                # predicate, which had measured 6-9% faster on the ball's gradient on
+                # 2026-11-25). Each nested branch's linearisation traced both branches, so
+                # the trace grew fourfold a level. Side by side (benchmarks/ab.py, 5 rounds):
+                # the same values to the last bit, run times within noise (the ball's
+                # gradient 3.555 against 3.512 ms by minima, 3.857 against 3.931 by medians;
+                # the dropped box's 132.5 against 128.3, 134.8 against 133.3), and the
+                # gradients' programs smaller and faster to trace: the ball's 49,228 -> 40,904
+                # lines of StableHLO (10.8 -> 9.6 s), the box's 86,853 -> 62,314 (30.6 -> 22.5
+                # s), one resolve_impacts of a box landing on a corner 46,597 -> 26,898 (21.1 ->
+                # 13.9 s).
+                return jax.jvp(lambda o, c: run_branch(take, o, c), (o, c), (o_dot, c_dot))
             return jax.checkpoint(run, policy=saved)
 
         # The cond itself inside a checkpoint as well: its residuals are then the operands as
