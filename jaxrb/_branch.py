@@ -118,8 +118,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
             def run(o, c, o_dot, c_dot):
                 # The taken branch alone (until 2026-12-02, a cond of both with a constant
                 # predicate, which had measured 6-9% faster on the ball's gradient on
-                # 2026-11-25). Each nested branch's linearisation traced both branches, so
-                # the trace grew fourfold a level. Side by side (benchmarks/ab.py, 5 rounds):
+                # 2026-11-25). Each linearisation then traced both branches: four branch
+                # JVPs a nested level instead of two. Side by side (benchmarks/ab.py, 5 rounds):
                 # the same values to the last bit, run times within noise (the ball's
                 # gradient 3.555 against 3.512 ms by minima, 3.857 against 3.931 by medians;
                 # the dropped box's 132.5 against 128.3, 134.8 against 133.3), and the

@@ -677,7 +677,7 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
 
         def sub_step(s):
             # Both branches are checkpoints already. With ``recompute_in_reverse`` (each
-            # linearisation holds both branches) the ball's gradient was 69,068 lines of
+            # linearisation then held both branches) the ball's gradient was 69,068 lines of
             # StableHLO instead of 45,715 (38,365 before this branch), for the same kernels.
             return branch(
                 (index == 0) & any_hit & clear,
