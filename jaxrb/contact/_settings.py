@@ -71,6 +71,16 @@ class ContactSettings:
         time_of_impact: locate the first new impact inside each step: advance to it,
             apply the impulse, finish the step. Bounce heights then do not depend on ``dt``.
         toi_iterations: root-finding iterations for the time of impact.
+        located_impacts: with ``time_of_impact``, the impacts located inside one step, the
+            earliest first; the step is split at each (at most ``located_impacts + 1``
+            parts). A later impact in the same step is applied at the instant of the last
+            located one, before it touches (an error of up to its approach speed times the
+            rest of the step). Located impacts after the first are those of pairs whose
+            bodies move as predicted until then (touching nothing): a second ball landing
+            elsewhere, not a body's second impact after its first. With 1, a ball landing
+            0.45 dt after another in the same step bounced 1.1% too high at dt = 10 ms
+            (0.11% at 1 ms); with 2, exactly. Each one more adds a search to the compiled
+            step (run only in steps that have that many).
         position_iterations: PGS sweeps of the split-impulse penetration correction.
         position_correction: fraction of the penetration (beyond ``correction_slop``)
             removed per step. The correction moves positions only, never velocities, so it
@@ -96,6 +106,7 @@ class ContactSettings:
     margin: float | None = None
     time_of_impact: bool = True
     toi_iterations: int = 14
+    located_impacts: int = 2
     position_iterations: int = 8
     position_correction: float = 0.8
     penetration_slop: float = 1e-5
@@ -104,7 +115,8 @@ class ContactSettings:
     def __post_init__(self):
         if self.solver not in ("pgs", "exact"):
             raise ValueError(f"ContactSettings.solver must be 'pgs' or 'exact', got {self.solver!r}.")
-        for name in ("iterations", "impact_iterations", "newton_iterations", "toi_iterations", "position_iterations"):
+        for name in ("iterations", "impact_iterations", "newton_iterations", "toi_iterations", "located_impacts",
+                     "position_iterations"):
             _check(name, getattr(self, name), integer=True, positive=True)
             object.__setattr__(self, name, int(getattr(self, name)))  # np.int64(8) too: a static loop length
         for name in ("restitution_threshold", "penetration_slop", "correction_slop"):
