@@ -327,6 +327,24 @@ def test_a_second_impact_in_the_same_step_is_located(dtype):
     if dtype == jnp.float64:
         one = _first_apexes_of_two_balls_landing_in_one_step(dtype, rb.ContactSettings(located_impacts=1))
         assert abs(one[0]) < 1e-9 and 5e-3 < one[1] < 2e-2
+        # The derivative through the second located impact: d(e^2 h0)/de = 2 e h0 for each
+        # (forward mode, both balls' e at once; their pairs with the ground take the ball's e).
+        # Measured 1e-16 relative.
+        scene = rb.Scene([rb.Body(name, shape=rb.Sphere(0.1), mass=1.0) for name in ("a", "b")],
+                         ground=rb.Plane(), contacts="all")
+        t_first = np.sqrt(2 * 1.0 / G)
+        clearances = np.array([1.0, 0.5 * G * (t_first + 0.45 * 1e-2) ** 2])
+        params = scene.params(restitution=0.8)
+        state = scene.state(params, position=[[0.0, 0.0, 0.1 + clearances[0]], [3.0, 0.0, 0.1 + clearances[1]]])
+        step = rb.make_step(scene, SPLIT, 1e-2)
+
+        def apexes(e):  # after 55 steps both are rising from their bounce (at step 45)
+            final, _ = rb.rollout(step, params.replace(restitution=e), state, 55)
+            return final.position[:, 2] - 0.1 + final.velocity[:, 2] ** 2 / (2 * G)
+
+        value, slope = jax.jit(lambda e: jax.jvp(apexes, (e,), (jnp.ones_like(e),)))(params.restitution)
+        np.testing.assert_allclose(value, 0.8**2 * clearances, rtol=1e-12)
+        np.testing.assert_allclose(slope, 2 * 0.8 * clearances, rtol=1e-9)
 
 
 def test_balls_meeting_obliquely_after_another_lands_in_the_same_step_rebound_as_the_closed_form():

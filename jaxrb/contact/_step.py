@@ -711,11 +711,33 @@ def _pair_bodies(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return tuple(np.asarray(x, np.int32) for x in zip(*index, strict=True))
 
 
+def _with_a_touching_body(scene: Scene, touching: jax.Array) -> jax.Array:
+    """``(P,)`` bool: the pairs that have a moving body in a pair of ``touching`` ``(P,)``.
+
+    By static slices (``take_rows``): an index table or a scatter would capture array
+    constants (see :mod:`jaxrb._indexing`)."""
+    pair_a, pair_b = _pair_bodies(scene)
+    rows = [[p for p, ab in enumerate(zip(pair_a, pair_b, strict=True)) if body in ab]
+            for body in range(scene.num_bodies)]
+    touches = jnp.stack([jnp.any(take_rows(touching, r)) if r else jnp.zeros((), bool) for r in rows]
+                        + [jnp.zeros((), bool)])  # the ground (index N) does not move
+    return take_rows(touches, pair_a) | take_rows(touches, pair_b)
+
+
+def _located_impacts(ctx: _Ctx) -> int:
+    """``settings.located_impacts``, or 1 where no two contact pairs have their moving bodies
+    apart (a ball and the ground, or walls): a pair located after another then always has a
+    body that the other's impact moved, and is never searched (see :func:`_split_points`)."""
+    bodies = [{i for i in pair if i < ctx.scene.num_bodies} for pair in zip(*_pair_bodies(ctx.scene), strict=True)]
+    apart = any(not a & b for k, a in enumerate(bodies) for b in bodies[k + 1:])
+    return ctx.settings.located_impacts if apart else 1
+
+
 def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate):
     """The instants that split a step: ``taus`` ``(M + 2,)`` (fractions of the step, from 0
-    to 1, non-decreasing; ``M`` = ``settings.located_impacts``), and for each of the ``M + 1``
-    parts the pairs ``(M + 1, P)`` whose impact is located at its end or later, which its
-    impact pass leaves alone (see :func:`_regular`).
+    to 1, non-decreasing; ``M`` = :func:`_located_impacts`), and for each of the ``M + 1``
+    parts the pairs ``(M + 1, P)`` apart at its start whose impact is located at its end,
+    which it leaves alone (see :func:`_regular`).
 
     The first impact is the earliest root among the ``candidate`` pairs (apart at the start,
     overlapping at the end of the free flight). Each next one is searched from the last,
@@ -728,39 +750,44 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
     """
     dtype = state.position.dtype
     slop = ctx.settings.penetration_slop
-    start_gap = jnp.min(jnp.where(candidate, start_sep, ctx.margin))
-    end_gap = jnp.min(jnp.where(candidate, end_sep, 0.0))
+    one = jnp.ones((), dtype)
     no_pairs = jnp.zeros_like(candidate)
-    # Checkpointed branches (here and for the impacts): a cond's linearisation zero-fills the
-    # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
-    search = jax.checkpoint(lambda: _time_of_impact(ctx, state, flight, candidate, start_gap, end_gap),
-                            policy=SAVE_NAMED)
-    first = branch(jnp.any(candidate), search, lambda: jnp.ones((), dtype))
-    pair_a, pair_b = _pair_bodies(ctx.scene)
     frozen_state, frozen_flight = jax.lax.stop_gradient((state, flight))
 
+    def first(begin):
+        return candidate, jnp.min(jnp.where(candidate, start_sep, ctx.margin))
+
     def later(begin):
-        """The pairs to search after ``begin`` and their separations there."""
         gaps = _pair_gaps(ctx, _free_pose(frozen_state, frozen_flight, begin * ctx.dt))
-        touching = gaps <= slop
-        moved = jnp.zeros(ctx.scene.num_bodies + 1, bool).at[pair_a].max(touching).at[pair_b].max(touching)
-        moved = moved.at[-1].set(False)  # the ground does not move
-        return (gaps > slop) & (end_sep < 0) & ~moved[pair_a] & ~moved[pair_b], gaps
+        pairs = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx.scene, gaps <= slop)
+        return pairs, jnp.min(jnp.where(pairs, gaps, ctx.margin))
 
-    def locate_next(begin):
-        pairs, gaps = later(begin)
-        low = jnp.min(jnp.where(pairs, gaps, ctx.margin))
+    def locate(begin, k):
+        # The first search's pairs and bracket are known (from the branch test); the later
+        # ones' are computed at the instant they start from.
+        if isinstance(k, int):  # the first search alone (no loop)
+            pairs, low = first(begin)
+        else:
+            pairs, low = branch(k == 0, first, later, begin)
         high = jnp.min(jnp.where(pairs, end_sep, 0.0))
-        search = jax.checkpoint(
-            lambda: _time_of_impact(ctx, state, flight, pairs, low, high, lower=begin), policy=SAVE_NAMED)
-        return branch(jnp.any(pairs), search, lambda: jnp.ones((), dtype)), pairs
+        # Checkpointed (here and for the impacts): a cond's linearisation zero-fills the
+        # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
+        search = jax.checkpoint(lambda: _time_of_impact(ctx, state, flight, pairs, low, high, lower=begin),
+                                policy=SAVE_NAMED)
+        return branch(jnp.any(pairs), search, lambda: one), pairs
 
-    taus, ahead = [jnp.zeros((), dtype), first], [candidate]
-    for _ in range(ctx.settings.located_impacts - 1):
-        begin = taus[-1]
-        tau, pairs = branch(begin < 1, locate_next, lambda b: (jnp.ones((), dtype), no_pairs), begin)
-        taus.append(jnp.maximum(tau, begin))
-        ahead.append(pairs & (tau < 1))
-    taus.append(jnp.ones((), dtype))
-    ahead.append(no_pairs)
-    return jnp.stack(taus), jnp.stack(ahead)
+    def split(begin, k):
+        # One search in the compiled step, however many impacts are located.
+        tau, pairs = branch(begin < 1, locate, lambda b, k: (one, no_pairs), begin, k)
+        tau = jnp.maximum(tau, begin)
+        return tau, (tau, pairs & (tau < 1))
+
+    zero = jnp.zeros((), dtype)
+    located = _located_impacts(ctx)
+    if located == 1:  # no loop, and no search after the first in the program
+        tau, pairs = locate(zero, 0)
+        taus, ahead = tau[None], (pairs & (tau < 1))[None]
+    else:
+        _, (taus, ahead) = jax.lax.scan(split, zero, jnp.arange(located))
+    return (jnp.concatenate([jnp.zeros((1,), dtype), taus, one[None]]),
+            jnp.concatenate([ahead, no_pairs[None]]))
