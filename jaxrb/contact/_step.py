@@ -711,16 +711,14 @@ def _pair_bodies(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return tuple(np.asarray(x, np.int32) for x in zip(*index, strict=True))
 
 
-def _with_a_touching_body(scene: Scene, touching: jax.Array) -> jax.Array:
+def _with_a_touching_body(ctx: _Ctx, touching: jax.Array) -> jax.Array:
     """``(P,)`` bool: the pairs that have a moving body in a pair of ``touching`` ``(P,)``.
 
     By static slices (``take_rows``): an index table or a scatter would capture array
     constants (see :mod:`jaxrb._indexing`)."""
-    pair_a, pair_b = _pair_bodies(scene)
-    rows = [[p for p, ab in enumerate(zip(pair_a, pair_b, strict=True)) if body in ab]
-            for body in range(scene.num_bodies)]
-    touches = jnp.stack([jnp.any(take_rows(touching, r)) if r else jnp.zeros((), bool) for r in rows]
-                        + [jnp.zeros((), bool)])  # the ground (index N) does not move
+    touches = bodies_with_slots(ctx.layout, slot_values(ctx.layout, touching))
+    touches = jnp.concatenate([touches, jnp.zeros(1, bool)])  # the ground (index N) does not move
+    pair_a, pair_b = _pair_bodies(ctx.scene)
     return take_rows(touches, pair_a) | take_rows(touches, pair_b)
 
 
@@ -759,7 +757,7 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
 
     def later(begin):
         gaps = _pair_gaps(ctx, _free_pose(frozen_state, frozen_flight, begin * ctx.dt))
-        pairs = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx.scene, gaps <= slop)
+        pairs = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx, gaps <= slop)
         return pairs, jnp.min(jnp.where(pairs, gaps, ctx.margin))
 
     def locate(begin, k):
