@@ -296,10 +296,10 @@ def test_bounce_in_float32():
     assert float(traj.position[-1, 0, 2]) > 0.1 - 1e-3  # at rest on the ground, not through it
 
 
-def _first_apexes_of_two_balls_landing_in_one_step(dtype, settings=None, dt=1e-2):
+def _two_balls_landing_in_one_step(dtype, dt):
     """Two balls (r = 0.1 m, e = 0.8) dropped 3 m apart, the first from 1 m clearance, the
     second from higher, so that it lands 0.45 dt after the first, in the same step (0.15 and
-    0.60 of it). Returns each one's first apex clearance over the closed form e^2 h0, less 1."""
+    0.60 of it): ``(scene, params, state, clearances)``."""
     t_first = np.sqrt(2 * 1.0 / G)
     clearances = np.array([1.0, 0.5 * G * (t_first + 0.45 * dt) ** 2])
     assert int(t_first / dt) == int((t_first + 0.45 * dt) / dt)  # the same step
@@ -307,6 +307,13 @@ def _first_apexes_of_two_balls_landing_in_one_step(dtype, settings=None, dt=1e-2
                      ground=rb.Plane(), contacts="all")
     params = scene.params(restitution=0.8, dtype=dtype)
     state = scene.state(params, position=[[0.0, 0.0, 0.1 + clearances[0]], [3.0, 0.0, 0.1 + clearances[1]]])
+    return scene, params, state, clearances
+
+
+def _first_apexes_of_two_balls_landing_in_one_step(dtype, settings=None, dt=1e-2):
+    """Each ball's first apex clearance over the closed form e^2 h0, less 1
+    (:func:`_two_balls_landing_in_one_step`)."""
+    scene, params, state, clearances = _two_balls_landing_in_one_step(dtype, dt)
     step = rb.make_step(scene, SPLIT, dt, contact=settings)
     _, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, int(1.0 / dt)))(params, state)
     z, vz = (np.asarray(x[:, :, 2], float) for x in (traj.position, traj.velocity))
@@ -330,12 +337,7 @@ def test_a_second_impact_in_the_same_step_is_located(dtype):
         # The derivative through the second located impact: d(e^2 h0)/de = 2 e h0 for each
         # (forward mode, both balls' e at once; their pairs with the ground take the ball's e).
         # Measured 1e-16 relative.
-        scene = rb.Scene([rb.Body(name, shape=rb.Sphere(0.1), mass=1.0) for name in ("a", "b")],
-                         ground=rb.Plane(), contacts="all")
-        t_first = np.sqrt(2 * 1.0 / G)
-        clearances = np.array([1.0, 0.5 * G * (t_first + 0.45 * 1e-2) ** 2])
-        params = scene.params(restitution=0.8)
-        state = scene.state(params, position=[[0.0, 0.0, 0.1 + clearances[0]], [3.0, 0.0, 0.1 + clearances[1]]])
+        scene, params, state, clearances = _two_balls_landing_in_one_step(dtype, 1e-2)
         step = rb.make_step(scene, SPLIT, 1e-2)
 
         def apexes(e):  # after 55 steps both are rising from their bounce (at step 45)
