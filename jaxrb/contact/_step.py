@@ -434,50 +434,76 @@ def _free_flight(ctx: _Ctx, params: Params, state: State):
     return velocity, jnp.where(held, 0.0, acceleration), angular_velocity(params, state)
 
 
-def _time_of_impact(ctx: _Ctx, state: State, flight, candidate, start_gap, end_gap, lower=None) -> jax.Array:
-    """Fraction ``tau`` in ``[lower, 1]`` of the step at which a candidate pair first touches.
+def _time_of_impact(ctx: _Ctx, state: State, flight, end_sep, lower, choose, known_gaps, known):
+    """Fraction ``tau`` in ``[lower, 1]`` of the step at which the first of the chosen pairs
+    touches, and those pairs ``(P,)`` (``tau = 1`` where none is chosen).
 
-    ``flight`` is :func:`_free_flight` at ``state``. ``start_gap > 0`` and ``end_gap < 0``
-    are the candidate pairs' smallest separations at ``tau = lower`` (default 0) and
-    ``tau = 1`` (already known): they bracket the root. Its value comes from a fixed number of Illinois steps
-    and a last secant step through the bracket's true values, without tangents; its
-    derivative is the implicit function theorem's (:func:`_implicit_root`).
+    ``flight`` is :func:`_free_flight` at ``state``; ``end_sep`` ``(P,)`` the separations at
+    ``tau = 1`` (m). The search opens with the separations at ``lower``: ``known_gaps``
+    ``(P,)`` where ``known`` (a boolean scalar) is true, else evaluated there. From them
+    ``choose(gaps)`` picks the pairs to search ``(P,)``, which must be apart at ``lower``
+    and overlap at ``tau = 1``: their smallest separations at both ends bracket the root.
+    Its value comes from a fixed number of Illinois steps and a last secant step through
+    the bracket's true values, without tangents; its derivative is the implicit function
+    theorem's (:func:`_implicit_root`).
+
+    The opening is the loop's first iteration, not an evaluation of its own: the compiled
+    step holds one copy of the separations for every search (see :func:`_split_points`).
     """
     dtype = state.position.dtype
     big = float(jnp.finfo(dtype).max / 4)  # a Python float: ``distance`` must capture no tracer
 
+    def gaps_at(tau, state, flight):
+        return _pair_gaps(ctx, _free_pose(state, flight, tau * ctx.dt))
+
     def distance(tau, theta):
-        state, flight, candidate = theta
-        gaps = _pair_gaps(ctx, _free_pose(state, flight, tau * ctx.dt))
-        return jnp.min(jnp.where(candidate, gaps, big))
+        state, flight, pairs = theta
+        return jnp.min(jnp.where(pairs, gaps_at(tau, state, flight), big))
 
-    theta = (state, flight, candidate)
-    frozen_theta = jax.lax.stop_gradient(theta)
+    frozen = jax.lax.stop_gradient((state, flight))
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+    lower = jax.lax.stop_gradient(jnp.asarray(lower, dtype))
+    end_sep = jax.lax.stop_gradient(end_sep)
+    opening_gaps = jax.lax.stop_gradient(known_gaps)
+    known = jnp.asarray(known, bool)
 
-    def illinois(carry, _):
+    def illinois(carry, i):
         # (a, b): the bracket; (fa, fb): the values the next secant uses (Illinois halves
         # the stale one); (ta, tb): the true values at a and b.
-        a, fa, ta, b, fb, tb, side = carry
+        (a, fa, ta, b, fb, tb, side), pairs = carry
+        opening = i == 0
         c = jnp.clip((a * fb - b * fa) / jnp.where(fb != fa, fb - fa, 1.0), a, b)
-        fc = distance(c, frozen_theta)
+        # The separations at the opening (unless known) and at each secant point while a
+        # pair is searched; skipped at run time otherwise.
+        needed = jnp.where(opening, ~known, jnp.any(pairs))
+        gaps = branch(needed, lambda x: gaps_at(x, *frozen), lambda x: opening_gaps, jnp.where(opening, lower, c))
+        # The opening: the pairs and the bracket's ends.
+        chosen = choose(gaps)
+        low, high = (jnp.min(jnp.where(chosen, x, bound)) for x, bound in ((gaps, ctx.margin), (end_sep, 0.0)))
+        opened = (lower, low, low, one, high, high, jnp.zeros((), jnp.int32))
+        # An Illinois step.
+        fc = jnp.min(jnp.where(pairs, gaps, big))
         left = fc * fa > 0  # root in [c, b]
         a2, fa2, ta2 = jnp.where(left, c, a), jnp.where(left, fc, fa), jnp.where(left, fc, ta)
         b2, fb2, tb2 = jnp.where(left, b, c), jnp.where(left, fb, fc), jnp.where(left, tb, fc)
         # Illinois: halve the stale end's value when the same side moves twice.
         fb2 = jnp.where(left & (side > 0), 0.5 * fb2, fb2)
         fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
-        return (a2, fa2, ta2, b2, fb2, tb2, jnp.where(left, 1, -1).astype(jnp.int32)), None
+        stepped = (a2, fa2, ta2, b2, fb2, tb2, jnp.where(left, 1, -1).astype(jnp.int32))
+        bracket = jax.tree.map(lambda o, s: jnp.where(opening, o, s), opened, stepped)
+        return (bracket, jnp.where(opening, chosen, pairs)), None
 
-    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    fa, fb = (jax.lax.stop_gradient(x).astype(dtype) for x in (start_gap, end_gap))
-    lower = zero if lower is None else jax.lax.stop_gradient(lower).astype(dtype)
-    start = (lower, fa, fa, one, fb, fb, jnp.zeros((), jnp.int32))
-    (a, _, ta, b, _, tb, _), _ = jax.lax.scan(illinois, start, None, length=ctx.settings.toi_iterations)
+    start = ((zero, one, one, one, -one, -one, jnp.zeros((), jnp.int32)), jnp.zeros(end_sep.shape, bool))
+    ((a, _, ta, b, _, tb, _), pairs), _ = jax.lax.scan(
+        illinois, start, jnp.arange(ctx.settings.toi_iterations + 1))
     # A last secant step through the true values at the bracket's ends (the bracket is tight
     # by now; no more evaluations of the separations).
     root = jnp.clip((a * tb - b * ta) / jnp.where(tb != ta, tb - ta, 1.0), a, b)
-    root = checkpoint_name(jax.lax.stop_gradient(root), TIME_OF_IMPACT)
-    return jnp.clip(_implicit_root(distance, root, theta), 0.0, 1.0)
+    # Named, as is the root: reverse mode through a checkpointed step reads them back
+    # instead of running the search again.
+    root, pairs = checkpoint_name(jax.lax.stop_gradient((root, pairs)), TIME_OF_IMPACT)
+    tau = jnp.clip(_implicit_root(distance, root, (state, flight, pairs)), 0.0, 1.0)
+    return jnp.where(jnp.any(pairs), tau, one), pairs
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -750,41 +776,39 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
     slop = ctx.settings.penetration_slop
     one = jnp.ones((), dtype)
     no_pairs = jnp.zeros_like(candidate)
-    frozen_state, frozen_flight = jax.lax.stop_gradient((state, flight))
 
-    def first(begin):
-        return candidate, jnp.min(jnp.where(candidate, start_sep, ctx.margin))
-
-    def later(begin):
-        gaps = _pair_gaps(ctx, _free_pose(frozen_state, frozen_flight, begin * ctx.dt))
-        pairs = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx, gaps <= slop)
-        return pairs, jnp.min(jnp.where(pairs, gaps, ctx.margin))
+    def choose(k):
+        def pairs(gaps):
+            if isinstance(k, int):  # the first search alone (no loop)
+                return candidate
+            later = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx, gaps <= slop)
+            return jnp.where(k == 0, candidate, later)
+        return pairs
 
     def locate(begin, k):
-        # The first search's pairs and bracket are known (from the branch test); the later
-        # ones' are computed at the instant they start from.
-        if isinstance(k, int):  # the first search alone (no loop)
-            pairs, low = first(begin)
-        else:
-            pairs, low = branch(k == 0, first, later, begin)
-        high = jnp.min(jnp.where(pairs, end_sep, 0.0))
+        # The first search's pairs and the separations it opens with are the branch test's;
+        # the later ones' are computed at the instant they start from.
         # Checkpointed (here and for the impacts): a cond's linearisation zero-fills the
         # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
-        search = jax.checkpoint(lambda: _time_of_impact(ctx, state, flight, pairs, low, high, lower=begin),
-                                policy=SAVE_NAMED)
-        return branch(jnp.any(pairs), search, lambda: one), pairs
+        search = jax.checkpoint(
+            lambda: _time_of_impact(ctx, state, flight, end_sep, begin, choose(k), start_sep, k == 0),
+            policy=SAVE_NAMED)
+        return search()
 
     def split(begin, k):
-        # One search in the compiled step, however many impacts are located.
-        tau, pairs = branch(begin < 1, locate, lambda b, k: (one, no_pairs), begin, k)
+        # One search in the compiled step, however many impacts are located. The first
+        # searches where a candidate closes; a later one opens where the last ended inside
+        # the step.
+        tau, pairs = branch(jnp.where(k == 0, jnp.any(candidate), begin < 1),
+                            locate, lambda b, k: (one, no_pairs), begin, k)
         tau = jnp.maximum(tau, begin)
         return tau, (tau, pairs & (tau < 1))
 
     zero = jnp.zeros((), dtype)
     located = _located_impacts(ctx)
     if located == 1:  # no loop, and no search after the first in the program
-        tau, pairs = locate(zero, 0)
-        taus, ahead = tau[None], (pairs & (tau < 1))[None]
+        tau, (_, ahead) = split(zero, 0)
+        taus, ahead = tau[None], ahead[None]
     else:
         _, (taus, ahead) = jax.lax.scan(split, zero, jnp.arange(located))
     return (jnp.concatenate([jnp.zeros((1,), dtype), taus, one[None]]),
