@@ -76,13 +76,15 @@ class ContactSettings:
             parts). A later impact in the same step is applied at the instant of the last
             located one, before it touches (an error of up to its approach speed times the
             rest of the step). Located impacts after the first are those of pairs whose
-            bodies move as predicted until then (touching nothing): a second ball landing
-            elsewhere, not a body's second impact after its first. With 1, a ball landing
-            0.45 dt after another in the same step bounced 1.1% too high at dt = 10 ms
-            (0.11% at 1 ms); with 2, exactly. Above 1, the compiled step holds a loop of
-            searches and one more evaluation of the pairs' separations (run only in steps
-            that locate an impact), where some two pairs have their moving bodies apart
-            (not a ball with the ground and walls): the 5-box stack's 200-step program grew
+            bodies move as predicted until then: none struck earlier in the step, nor
+            touching (through a chain of contacts) a body that was. A second ball landing
+            elsewhere, or on a table resting elsewhere, is located; a body's second impact
+            after its first is not. With 1, a ball landing 0.45 dt after another in the
+            same step bounced 1.1% too high at dt = 10 ms (0.11% at 1 ms); with 2, exactly.
+            Above 1, the compiled step holds a loop of searches and one more evaluation of
+            the pairs' separations (run only in steps that locate an impact), where some
+            two pairs have their moving bodies apart (not a ball with the ground and
+            walls): the 5-box stack's 200-step program grew
             from 18,478 to 19,474 lines of StableHLO, and compiled in 11.8-12.4 s against
             10.3-11.6 s (one machine, alternating processes), with the same states.
         position_iterations: PGS sweeps of the split-impulse penetration correction.

@@ -38,11 +38,13 @@ same roots as the distance and cost a fraction of the manifold), bracketed by th
 ends, found by a fixed number of Illinois (regula falsi) iterations and a last secant step;
 its derivative is the implicit-function theorem's, ``d tau = -dD / D'`` (a custom JVP):
 gradients account for the time of impact. The next impact in the same step is located
-the same way from the first, along the same free flight, among pairs of bodies that touch
-nothing there (another ball landing), and so on up to ``ContactSettings.located_impacts``
-(:func:`_split_points`). Impacts after the last located one are handled at its instant,
-and so is a pair of bodies that is apart at both ends of the flight but whose bounding
-spheres meet in between (a fast, small body passing another: ``_meeting_mid_step``).
+the same way from the first, along the same free flight, among pairs of bodies that no
+impact located so far can move: neither struck nor joined to a struck body by touching
+contacts (another ball landing, on the ground or on a table resting elsewhere), and so on
+up to ``ContactSettings.located_impacts`` (:func:`_split_points`). Impacts after the last
+located one are handled at its instant, and so is a pair of bodies that is apart at both
+ends of the flight but whose bounding spheres meet in between (a fast, small body passing
+another: ``_meeting_mid_step``).
 """
 
 from __future__ import annotations
@@ -477,8 +479,9 @@ def _time_of_impact(ctx: _Ctx, state: State, flight, end_sep, lower, choose, kno
         # pair is searched; skipped at run time otherwise.
         needed = jnp.where(opening, ~known, jnp.any(pairs))
         gaps = branch(needed, lambda x: gaps_at(x, *frozen), lambda x: opening_gaps, jnp.where(opening, lower, c))
-        # The opening: the pairs and the bracket's ends.
-        chosen = choose(gaps)
+        # The opening: the pairs (chosen there alone: a later search's test follows
+        # touching bodies through the scene, a loop of its own) and the bracket's ends.
+        chosen = branch(opening, choose, lambda g: pairs, gaps)
         low, high = (jnp.min(jnp.where(chosen, x, bound)) for x, bound in ((gaps, ctx.margin), (end_sep, 0.0)))
         opened = (lower, low, low, one, high, high, jnp.zeros((), jnp.int32))
         # An Illinois step.
@@ -491,7 +494,7 @@ def _time_of_impact(ctx: _Ctx, state: State, flight, end_sep, lower, choose, kno
         fa2 = jnp.where(~left & (side < 0), 0.5 * fa2, fa2)
         stepped = (a2, fa2, ta2, b2, fb2, tb2, jnp.where(left, 1, -1).astype(jnp.int32))
         bracket = jax.tree.map(lambda o, s: jnp.where(opening, o, s), opened, stepped)
-        return (bracket, jnp.where(opening, chosen, pairs)), None
+        return (bracket, chosen), None
 
     start = ((zero, one, one, one, -one, -one, jnp.zeros((), jnp.int32)), jnp.zeros(end_sep.shape, bool))
     ((a, _, ta, b, _, tb, _), pairs), _ = jax.lax.scan(
@@ -737,15 +740,38 @@ def _pair_bodies(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return tuple(np.asarray(x, np.int32) for x in zip(*index, strict=True))
 
 
-def _with_a_touching_body(ctx: _Ctx, touching: jax.Array) -> jax.Array:
-    """``(P,)`` bool: the pairs that have a moving body in a pair of ``touching`` ``(P,)``.
+def _pairs_of_bodies(ctx: _Ctx, bodies: jax.Array) -> jax.Array:
+    """``(P,)`` bool: the pairs that have a moving body in ``bodies`` ``(N,)``.
 
     By static slices (``take_rows``): an index table or a scatter would capture array
     constants (see :mod:`jaxrb._indexing`)."""
-    touches = bodies_with_slots(ctx.layout, slot_values(ctx.layout, touching))
-    touches = jnp.concatenate([touches, jnp.zeros(1, bool)])  # the ground (index N) does not move
+    bodies = jnp.concatenate([bodies, jnp.zeros(1, bool)])  # the ground (index N) does not move
     pair_a, pair_b = _pair_bodies(ctx.scene)
-    return take_rows(touches, pair_a) | take_rows(touches, pair_b)
+    return take_rows(bodies, pair_a) | take_rows(bodies, pair_b)
+
+
+def _bodies_of_pairs(ctx: _Ctx, pairs: jax.Array) -> jax.Array:
+    """``(N,)`` bool: the moving bodies of the pairs in ``pairs`` ``(P,)``."""
+    return bodies_with_slots(ctx.layout, slot_values(ctx.layout, pairs))
+
+
+def _moved_by_impacts(ctx: _Ctx, touching: jax.Array, struck: jax.Array) -> jax.Array:
+    """``(P,)`` bool: the pairs with a body that the impacts of the ``struck`` pairs can move.
+
+    Those are the struck pairs' bodies that touch there (``touching`` ``(P,)``: pairs in
+    contact) and every body joined to one of them by a chain of touching pairs, which the
+    impact pass (pair after pair) and the solve pass the impulse on to. The ground joins
+    nothing. A body outside that set moves on as :func:`_free_flight` predicts: in free
+    flight, or at its drift velocity where the last step's solve held it (a table resting
+    on the ground)."""
+    def spread(carry):
+        bodies, _ = carry
+        more = bodies | _bodies_of_pairs(ctx, touching & _pairs_of_bodies(ctx, bodies))
+        return more, jnp.any(more != bodies)
+
+    # Until no body joins: a loop of at most N - 1 passes, most often one or two.
+    bodies, _ = jax.lax.while_loop(lambda c: c[1], spread, (_bodies_of_pairs(ctx, struck & touching), True))
+    return _pairs_of_bodies(ctx, bodies)
 
 
 def _located_impacts(ctx: _Ctx) -> int:
@@ -766,50 +792,56 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
     The first impact is the earliest root among the ``candidate`` pairs (apart at the start,
     overlapping at the end of the free flight). Each next one is searched from the last,
     along the same free flight, among the pairs apart at that instant and overlapping at
-    the end whose bodies both move as predicted: none of them touches a body there (a
-    predicted gap at most the slop), since an impact or a resting contact changes the
-    motion. A second ball landing elsewhere is found; a body's second impact after its
-    first is not, and is handled as before, at the start of the part after the last
-    located impact.
+    the end whose bodies the impacts located so far cannot move
+    (:func:`_moved_by_impacts`: the bodies they strike and all that touch those, through
+    chains of contacts), since the flight does not know those impacts. A second ball
+    landing elsewhere is found, and so is one landing on a table resting on the ground
+    elsewhere; a body's second impact after its first is not, nor an impact onto a body
+    touching one struck before it in the step: those are handled as before, at the start
+    of the part after the last located impact.
     """
     dtype = state.position.dtype
     slop = ctx.settings.penetration_slop
     one = jnp.ones((), dtype)
     no_pairs = jnp.zeros_like(candidate)
 
-    def choose(k):
+    def choose(k, struck):
         def pairs(gaps):
             if isinstance(k, int):  # the first search alone (no loop)
                 return candidate
-            later = (gaps > slop) & (end_sep < 0) & ~_with_a_touching_body(ctx, gaps <= slop)
+            later = (gaps > slop) & (end_sep < 0) & ~_moved_by_impacts(ctx, gaps <= slop, struck)
             return jnp.where(k == 0, candidate, later)
         return pairs
 
-    def locate(begin, k):
+    def locate(begin, struck, k):
         # The first search's pairs and the separations it opens with are the branch test's;
         # the later ones' are computed at the instant they start from.
         # Checkpointed (here and for the impacts): a cond's linearisation zero-fills the
         # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
         search = jax.checkpoint(
-            lambda: _time_of_impact(ctx, state, flight, end_sep, begin, choose(k), start_sep, k == 0),
+            lambda: _time_of_impact(ctx, state, flight, end_sep, begin, choose(k, struck), start_sep, k == 0),
             policy=SAVE_NAMED)
         return search()
 
-    def split(begin, k):
+    def split(carry, k):
         # One search in the compiled step, however many impacts are located. The first
         # searches where a candidate closes; a later one opens where the last ended inside
-        # the step.
+        # the step. ``struck``: the pairs located so far.
+        begin, struck = carry
+        # (``k`` is captured, not an operand: a Python 0 where no loop runs, so that the
+        # program then holds the first search's choice alone.)
         tau, pairs = branch(jnp.where(k == 0, jnp.any(candidate), begin < 1),
-                            locate, lambda b, k: (one, no_pairs), begin, k)
+                            lambda b, s: locate(b, s, k), lambda *_: (one, no_pairs), begin, struck)
         tau = jnp.maximum(tau, begin)
-        return tau, (tau, pairs & (tau < 1))
+        located = pairs & (tau < 1)
+        return (tau, struck | located), (tau, located)
 
     zero = jnp.zeros((), dtype)
     located = _located_impacts(ctx)
     if located == 1:  # no loop, and no search after the first in the program
-        tau, (_, ahead) = split(zero, 0)
+        _, (tau, ahead) = split((zero, no_pairs), 0)
         taus, ahead = tau[None], ahead[None]
     else:
-        _, (taus, ahead) = jax.lax.scan(split, zero, jnp.arange(located))
+        _, (taus, ahead) = jax.lax.scan(split, (zero, no_pairs), jnp.arange(located))
     return (jnp.concatenate([jnp.zeros((1,), dtype), taus, one[None]]),
             jnp.concatenate([ahead, no_pairs[None]]))
