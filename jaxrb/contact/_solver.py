@@ -529,12 +529,20 @@ def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
         compressed = jax.tree.map(lambda new, old: jnp.where(phase == 1, new, old), (pair, taken), compressed)
         # Once a pass moves no impulse beyond rounding, the phase's later passes would
         # repeat it: they are skipped (a pair touching at one slot needs one pass a phase,
-        # then one to see it settled). Not recomputed in reverse mode: that made the
-        # dropped box's gradient 26% faster but its program 72% larger (148,440 lines of
-        # StableHLO against 86,228) and its trace 20 s longer.
+        # then one to see it settled). Recomputed in reverse mode: each pass's reverse then
+        # reads its operands alone. Without it (until 2026-12-03) the reverse cost grew
+        # with every pass of the scan, settled or not (45 -> 13 passes: 70 -> 40 ms), and
+        # one impact step of two balls and a table (every pair on the four-slot path) took
+        # 80 ms to differentiate against 37 ms now (forward 1.1-1.5 ms). The dropped box
+        # (``benchmarks/ab.py /work/main <this> --programs drop,ball --rounds 10``): its
+        # gradient 110 -> 89 ms by minima, 62,563 -> 60,629 lines of StableHLO, trace and
+        # XLA 24.9 + 38.7 -> 18.0 + 29.7 s, the gradient within 4.3e-15 (round-off); the
+        # ball unchanged (no multi-slot pair). (On 2026-11-29 it had made the program 72%
+        # larger, probably because ``branch`` then traced both branches into each
+        # linearisation.)
         pair, lam, rest, taken, settled = branch(
             settled & (phase == last), lambda *a: (*a[:4], jnp.ones((), bool)), run_pass,
-            pair, lam, rest, taken, phase)
+            pair, lam, rest, taken, phase, recompute_in_reverse=True)
         return (pair, lam, rest, taken, compressed, (phase, settled)), None
 
     phases = literal_array([-1] * PAIR_PASSES + [0] * FRICTION_PASSES + [1] + [2] * FRICTION_PASSES)
