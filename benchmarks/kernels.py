@@ -21,6 +21,12 @@ What it measures
       10, the first fails its free-flight attempt and runs as contact steps, one of them
       the impact. What one impact adds to the ball's counts (divide by 1000, not 20).
     * ``stack``: three boxes (half-extent 0.1 m, 1 kg, mu = 0.5) resting on the ground.
+    * ``table``: one impact step of a scene with a four-slot pair: balls a and b (r = 0.1 m,
+      1 kg) land on the ground 0.15 and 0.60 of the way through the same step (h = 10 ms,
+      e = 0.8, frictionless, ``SymplecticSplitting``), beside a 1000 kg table (a box
+      (0.3, 0.3, 0.05) m) resting on it. The rollout is that one step, from the state after
+      45 steps of a drop from 1 m clearance, so its impacts go through the multi-slot impact
+      law (``_pair_impact``), whose reverse pass was once 30-60x the forward.
     * ``free``: a tumbling box under gravity, no contacts (compiles in seconds).
 
     Each program runs once to warm up and once under ``jax.profiler.trace``. Every event on
@@ -37,6 +43,7 @@ How to run (from the repository root)
     python benchmarks/kernels.py --scene stack --depth 8   # 10 steps: the profiler records every PGS kernel
     python benchmarks/kernels.py --scene stack --frames 2  # which lines of jaxrb the kernels come from
     python benchmarks/kernels.py --scene impact   # 20 steps through one impact
+    python benchmarks/kernels.py --scene table    # one impact step with a four-slot pair
     python benchmarks/kernels.py --quick          # CI smoke run, temp dir
 
 It prints a table and writes ``kernels_<scene>.json`` to ``--out`` (default
@@ -80,13 +87,24 @@ def scene_and_loss(name: str, steps: int):
         step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
         params = scene.params(friction=0.5)
         state = scene.state(params, position=[(0.0, 0.0, 0.1 + 0.2 * i) for i in range(3)])
+    elif name == "table":
+        g, dt = 9.81, 1e-2
+        t_first = (2 * 1.0 / g) ** 0.5
+        scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0), rb.Body("b", shape=rb.Sphere(0.1), mass=1.0),
+                          rb.Body("table", shape=rb.Box((0.3, 0.3, 0.05)), mass=1000.0)],
+                         ground=rb.Plane(), contacts="all")
+        step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), dt)
+        params = scene.params(restitution=0.8, friction=0.0)
+        clearance_b = 0.5 * g * (t_first + 0.45 * dt) ** 2
+        state = scene.state(params, position=[[0.0, 0.0, 1.1], [3.0, 0.0, 0.1 + clearance_b], [-3.0, 0.0, 0.05]])
+        state = jax.jit(lambda p, s: rb.rollout(step, p, s, 45)[0])(params, step.prepare(state))
     elif name == "free":
         scene = rb.Scene([rb.Body("box", shape=rb.Box((0.1, 0.2, 0.3)), mass=2.0)])
         step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
         params = scene.params()
         state = scene.state(params, velocity=(1.0, 0.0, 5.0), angular_velocity=(0.3, 4.0, 0.1))
     else:
-        raise ValueError(f"--scene must be 'ball', 'impact', 'stack' or 'free', got {name!r}")
+        raise ValueError(f"--scene must be 'ball', 'impact', 'stack', 'table' or 'free', got {name!r}")
     state = step.prepare(state)
 
     def loss(p, s):
@@ -226,8 +244,9 @@ def print_table(scene: str, record: dict, top: int):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", default="ball", choices=["ball", "impact", "stack", "free"])
-    p.add_argument("--steps", type=int, default=None, help="rollout length (default: 1000; stack 10, impact 20)")
+    p.add_argument("--scene", default="ball", choices=["ball", "impact", "stack", "table", "free"])
+    p.add_argument("--steps", type=int, default=None,
+                   help="rollout length (default: 1000; stack 10, impact 20, table 1)")
     p.add_argument("--depth", type=int, default=10, help="op_name parts kept when grouping")
     p.add_argument("--frames", type=int, default=1, help="source frames (inside jaxrb/) per by_line key")
     p.add_argument("--top", type=int, default=25)
@@ -239,7 +258,7 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     if args.quick:
         args.scene, args.steps = "free", 20
-    steps = args.steps or {"stack": 10, "impact": 20}.get(args.scene, 1000)
+    steps = args.steps or {"stack": 10, "impact": 20, "table": 1}.get(args.scene, 1000)
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {

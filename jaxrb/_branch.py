@@ -10,10 +10,16 @@ member (both run only when the members disagree). An ensemble of similar environ
 mostly agrees, and then costs what one environment does in kernels.
 
 Derivatives are those of ``lax.cond`` (a ``jax.custom_jvp`` whose rule differentiates
-the plain ``lax.cond``), so ``grad`` and ``jvp`` are unchanged; a ``vmap`` *of* a derivative
-batches that plain ``lax.cond`` and runs both branches, as before. With
-``recompute_in_reverse`` the rule is a ``lax.cond`` of each branch's checkpointed JVP
-instead: the same values and derivatives, and fewer residuals in reverse mode.
+the plain ``lax.cond``), so ``grad`` and ``jvp`` are unchanged. A derivative *of* a ``vmap``
+(``grad`` of an ensemble's loss, or of the contact solver's own ``vmap`` over a colour's
+pairs) batches that rule: it then differentiates each branch under a ``lax.cond`` of its
+own on whether any member takes it, and selects per member, as the batching rule does
+(until 2026-12-03 the rule's ``lax.cond`` became a ``select``, and every member ran both
+branches' JVPs). So does ``jax.vmap(jax.grad(f))``, traced in one go. A ``vmap`` of a
+derivative traced on its own first (``jax.vmap(jax.jit(jax.grad(f)))``) batches that
+derivative's plain ``lax.cond`` and runs both branches, as before. With
+``recompute_in_reverse`` each branch's JVP is checkpointed: the same values and
+derivatives, and fewer residuals in reverse mode.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.extend import core as jex_core
 
 __all__ = ["branch"]
@@ -99,10 +106,26 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
     differentiable = jax.custom_jvp(batched)
 
+    def per_member(linearised, p, *args):
+        """The rule's cond where ``p`` is batched (the rule is being vmapped): each branch
+        under a cond on whether any member takes it (a predicate ``vmap`` leaves unbatched,
+        so the cond stays a cond), then a select per member, as ``_rule`` does."""
+        idle = lambda *_: (jax.tree.map(_zeros, out_shape), jax.tree.map(_tangent_zeros, out_shape))  # noqa: E731
+        a = jax.lax.cond(_any_member(p), linearised(True), idle, *args)
+        b = jax.lax.cond(_any_member(~p), linearised(False), idle, *args)
+        return jax.tree.map(lambda x, y: x if x.dtype == jax.dtypes.float0 else jnp.where(p, x, y), a, b)
+
     @differentiable.defjvp
     def _jvp(primals, tangents):
         if not recompute_in_reverse:
-            return jax.jvp(evaluate, primals, tangents)
+            if not _is_batched(primals[0]):
+                return jax.jvp(evaluate, primals, tangents)
+            p, ops, consts = primals
+            _, ops_dot, consts_dot = tangents
+
+            def plain(take):
+                return lambda o, c, o_dot, c_dot: jax.jvp(lambda o, c: run_branch(take, o, c), (o, c), (o_dot, c_dot))
+            return per_member(plain, p, ops, consts, ops_dot, consts_dot)
         # Reverse mode splits a cond into a forward cond that returns the residuals of
         # both branches (the branch not taken returns zeros in the other's slots) and a
         # backward cond that reads them. A branch checkpointed inside the cond still adds
@@ -137,6 +160,9 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         # impact pass's eight sweeps, 14 arrays a sweep (``python benchmarks/kernels.py
         # --scene impact``: with the impact pass recomputed, its reverse pass 300.1 -> 288.2
         # kernels a step, the same gradient to the last bit).
+        if _is_batched(p):
+            return jax.checkpoint(lambda *a: per_member(linearised, *a), policy=saved)(p, ops, consts, ops_dot,
+                                                                                       consts_dot)
         return jax.checkpoint(lambda *a: jax.lax.cond(a[0], linearised(True), linearised(False), *a[1:]),
                               policy=saved)(p, ops, consts, ops_dot, consts_dot)
 
@@ -159,3 +185,44 @@ def _as(x, like: jax.ShapeDtypeStruct):
     if x.dtype != like.dtype or (jax.typeof(x).weak_type and not like.weak_type):
         return jax.lax.convert_element_type(x, like.dtype)
     return x
+
+
+def _zeros(like: jax.ShapeDtypeStruct):
+    return jnp.zeros(like.shape, like.dtype)
+
+
+def _tangent_zeros(like: jax.ShapeDtypeStruct):
+    """The zero tangent of a value of ``like``'s type (``float0`` for integers and booleans)."""
+    if jnp.issubdtype(like.dtype, jnp.inexact):
+        return jnp.zeros(like.shape, like.dtype)
+    return np.zeros(like.shape, jax.dtypes.float0)
+
+
+def _is_batched(x) -> bool:
+    """Whether ``x`` is being vmapped here (at trace time): ``custom_vmap`` calls its rule
+    when, and only when, a ``vmap`` batches its operand."""
+    seen = []
+
+    @jax.custom_batching.custom_vmap
+    def probe(x):
+        return x
+
+    @probe.def_vmap
+    def _(axis_size, in_batched, x):
+        seen.append(in_batched[0])
+        return x, in_batched[0]
+
+    probe(x)
+    return any(seen)
+
+
+@jax.custom_batching.custom_vmap
+def _any_member(p):
+    """``p`` (scalar bool) alone; under ``jax.vmap``, whether any member's ``p`` holds, one
+    value for all members (unbatched, at every level of nested ``vmap``s)."""
+    return p
+
+
+@_any_member.def_vmap
+def _(axis_size, in_batched, p):
+    return _any_member(jnp.any(p) if in_batched[0] else p), False

@@ -784,13 +784,21 @@ def test_settled_passes_of_a_pair_impact_are_skipped_without_changing_it(monkeyp
 
     def run(settled, derivative=True):
         monkeypatch.setattr(_solver, "SETTLED", settled)
+        # SETTLED is read when the pair impact is traced, and ``branch`` traces it once for
+        # all calls with the same shapes (a module-level function): trace it again.
+        jax.clear_caches()
         if not derivative:
             return jax.vmap(after)(on_edge, twist, e, mu)
         # One forward-mode column (the approach speed): compiles in a fraction of jacrev's time.
         down = jnp.zeros(6).at[2].set(-1.0)
         return jax.vmap(lambda *a: jax.jvp(lambda t: after(a[0], t, *a[2:]), (a[1],), (down,)))(on_edge, twist, e, mu)
 
-    skipped, every, once = run(64), run(-1.0), run(np.inf, derivative=False)
+    try:
+        skipped, every, once = run(64), run(-1.0), run(np.inf, derivative=False)
+    finally:
+        # No later test may reuse a pair impact traced with another SETTLED.
+        monkeypatch.undo()
+        jax.clear_caches()
     np.testing.assert_allclose(skipped[0], every[0], rtol=0, atol=1e-11)
     np.testing.assert_allclose(skipped[1], every[1], rtol=0, atol=1e-8)
     assert np.abs(np.asarray(once - every[0]))[np.asarray(on_edge)].max() > 1e-4

@@ -142,6 +142,46 @@ def test_branch_derivatives_are_those_of_cond(recompute_in_reverse):
         np.testing.assert_allclose(jax.hessian(loss(f), (1, 2))(p, x, y), want, rtol=1e-15, atol=1e-15)
 
 
+@pytest.mark.parametrize("recompute_in_reverse", [False, True])
+def test_the_derivative_of_a_vmapped_branch_skips_a_branch_no_member_takes(recompute_in_reverse):
+    """``grad`` and ``jacfwd`` of an ensemble's loss, and per-member gradients, run a branch
+    only where some member takes it, as the forward does (``vmap`` batches the derivative's
+    rule). Until 2026-12-03 the rule's cond became a select and every member ran both
+    branches' derivatives: the first branch ran with no member taking it. Nested ``vmap``s:
+    once for the whole ensemble."""
+    calls = []
+    f = _counted_cond(calls, recompute_in_reverse)
+    member = lambda p, x, y: f(p, x, y)[0] + 2.0 * f(p, x, y)[1]  # noqa: E731
+    member_ref = lambda p, x, y: _reference(p, x, y)[0] + 2.0 * _reference(p, x, y)[1]  # noqa: E731
+    x, y = jnp.array([[0.3, -1.2, 2.0], [0.5, 0.1, -0.7]]), jnp.array([[1.5, 0.7, -0.4], [0.2, -2.0, 1.1]])
+    nested = lambda g: lambda x, y, p: jnp.sum(jax.vmap(jax.vmap(g))(p, x, y))  # noqa: E731
+    flat = lambda g: lambda x, y, p: jnp.sum(jax.vmap(g)(p[0], x[0], y[0]))  # noqa: E731
+    for loss in (nested, flat):
+        for derivative in (jax.grad, jax.jacfwd):
+            compiled = jax.jit(derivative(loss(member), (0, 1)))
+            for pred in ([[False] * 3] * 2, [[True] * 3] * 2, [[False] * 3, [False, True, False]]):
+                pred = jnp.array(pred)
+                jax.block_until_ready(compiled(x, y, pred))
+                calls.clear()
+                got = jax.block_until_ready(compiled(x, y, pred))
+                want = derivative(loss(member_ref), (0, 1))(x, y, pred)
+                for g, w in zip(got, want, strict=True):
+                    np.testing.assert_allclose(g, w, rtol=1e-15, atol=1e-15)
+                # The first branch runs (in the forward, in its derivative) if and only if
+                # some member takes it.
+                taken = bool(jnp.any(pred if loss is nested else pred[0]))
+                assert (len(calls) > 0) == taken, (pred, loss, derivative, len(calls))
+    # Per-member gradients, traced in one go, skip it too.
+    per_member = jax.jit(jax.vmap(jax.grad(member, (1, 2))))
+    pred = jnp.zeros(3, bool)
+    calls.clear()
+    got = per_member(pred, x[0], y[0])
+    want = jax.vmap(jax.grad(member_ref, (1, 2)))(pred, x[0], y[0])
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-15, atol=1e-15)
+    assert not calls
+
+
 def _primitive_count(jaxpr, name: str) -> int:
     """How many ``name`` equations a jaxpr holds, sub-jaxprs (cond branches, scans) included."""
     count = 0

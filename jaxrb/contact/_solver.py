@@ -507,17 +507,23 @@ def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
         u = _local_velocity(s, pair)
         value = jnp.where(compressing, 0.0, jnp.where(phase == 1, e_k * lam_k[:, 0], rest_k[:, 0]))
         # The frictionless passes need no Coulomb search (the same values as with mu = 0).
+        # Recomputed in reverse mode, so that a frictionless pass does not fill the Coulomb
+        # solve's residuals with zeros (130 copies a slot in the table scene's step).
         new = branch(phase < 0, lambda k, u, *_: each(frictionless_impulse, k, u, jnp.zeros_like(u[:, 0])),
                      lambda *a: each(coulomb_impulse, *a), k_k, u - spatial.matvec(k_k, own), mu_k, value,
-                     jnp.broadcast_to(compressing, value.shape))
+                     jnp.broadcast_to(compressing, value.shape), recompute_in_reverse=True)
         change = jnp.where(on_k[:, None], new, 0.0) - own
         taken = taken - each(energy_change, k_k, u, change)
         lam_k, rest_k = jnp.where(compressing, lam_k + change, lam_k), jnp.where(compressing, rest_k, rest_k + change)
         return (_local_apply(s, pair, change), taken, phase), (lam_k, rest_k)
 
     def run_pass(pair, lam, rest, taken, phase):
-        (pair, taken, _), (new_lam, new_rest) = jax.lax.scan(slot_update, (pair, taken, phase),
-                                                             (slots, lam, rest, on, k, e, mu))
+        # Each slot's update recomputed in reverse mode: the scan then keeps its carry a slot,
+        # not the update's residuals (the Coulomb search's among them), each of which was a
+        # dynamic-update-slice and a dynamic-slice a slot. One impact step of two balls and a
+        # table (``python benchmarks/kernels.py --scene table``): reverse 472k -> 281k kernels.
+        (pair, taken, _), (new_lam, new_rest) = jax.lax.scan(jax.checkpoint(slot_update, prevent_cse=False),
+                                                             (pair, taken, phase), (slots, lam, rest, on, k, e, mu))
         moved = jnp.maximum(jnp.max(jnp.abs(new_lam - lam)), jnp.max(jnp.abs(new_rest - rest)))
         size = jnp.maximum(jnp.max(jnp.abs(new_lam)), jnp.max(jnp.abs(new_rest)))
         return pair, new_lam, new_rest, taken, moved <= SETTLED * jnp.finfo(pair.dtype).eps * size
@@ -598,8 +604,13 @@ def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible
         c_p, rows_p, (k_p, e_p, mu_p, on_p) = inputs
         pair = twist[rows_p].reshape(width, 12)
         u_n = jax.vmap(lambda s: _local_velocity(s, pair)[:, 0], out_axes=-1)(_slot_major(c_p))  # (W, K)
-        hit = jnp.any(on_p & (u_n < -threshold), axis=-1)
-        pair, lam = _pair_impact(c_p, k_p, pair, e_p, mu_p, on_p & hit[:, None])
+        on_p = on_p & jnp.any(on_p & (u_n < -threshold), axis=-1, keepdims=True)
+        # A colour with no pair that collides is left as it is, which is what its impact
+        # would give, exactly (every change zero): most colours of a sweep, and all of the
+        # sweep that ends the impact. Its 45 passes, most skipped, still cost the scan's
+        # copies and tests, and in reverse mode their transposes.
+        pair, lam = branch(jnp.any(on_p), _pair_impact, lambda c, k, pair, *_: (pair, jnp.zeros((*on_p.shape, 3),
+                           pair.dtype)), c_p, k_p, pair, e_p, mu_p, on_p)
         return twist.at[rows_p].set(pair.reshape(2 * width, 6)), lam
 
     def run(twist, total):

@@ -833,8 +833,8 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
         tau, pairs = branch(jnp.where(k == 0, jnp.any(candidate), begin < 1),
                             lambda b, s: locate(b, s, k), lambda *_: (one, no_pairs), begin, struck)
         tau = jnp.maximum(tau, begin)
-        located = pairs & (tau < 1)
-        return (tau, struck | located), (tau, located)
+        found = pairs & (tau < 1)
+        return (tau, struck | found), (tau, found)
 
     zero = jnp.zeros((), dtype)
     located = _located_impacts(ctx)
