@@ -115,17 +115,27 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         b = jax.lax.cond(_any_member(~p), linearised(False), idle, *args)
         return jax.tree.map(lambda x, y: x if x.dtype == jax.dtypes.float0 else jnp.where(p, x, y), a, b)
 
+    def branch_jvp(take: bool):
+        """The JVP of the branch ``take`` names, alone: ``(o, c, o_dot, c_dot) -> (out, out_dot)``."""
+        # (Until 2026-12-02, a cond of both with a constant predicate, which had measured
+        # 6-9% faster on the ball's gradient on 2026-11-25. Each linearisation then traced
+        # both branches: four branch JVPs a nested level instead of two. Side by side
+        # (benchmarks/ab.py, 5 rounds): the same values to the last bit, run times within
+        # noise (the ball's gradient 3.555 against 3.512 ms by minima, 3.857 against 3.931 by
+        # medians; the dropped box's 132.5 against 128.3, 134.8 against 133.3), and the
+        # gradients' programs smaller and faster to trace: the ball's 49,228 -> 40,904 lines
+        # of StableHLO (10.8 -> 9.6 s), the box's 86,853 -> 62,314 (30.6 -> 22.5 s), one
+        # resolve_impacts of a box landing on a corner 46,597 -> 26,898 (21.1 -> 13.9 s).)
+        return lambda o, c, o_dot, c_dot: jax.jvp(lambda o, c: run_branch(take, o, c), (o, c), (o_dot, c_dot))
+
     @differentiable.defjvp
     def _jvp(primals, tangents):
+        p, ops, consts = primals
+        _, ops_dot, consts_dot = tangents
         if not recompute_in_reverse:
-            if not _is_batched(primals[0]):
+            if not _is_batched(p):
                 return jax.jvp(evaluate, primals, tangents)
-            p, ops, consts = primals
-            _, ops_dot, consts_dot = tangents
-
-            def plain(take):
-                return lambda o, c, o_dot, c_dot: jax.jvp(lambda o, c: run_branch(take, o, c), (o, c), (o_dot, c_dot))
-            return per_member(plain, p, ops, consts, ops_dot, consts_dot)
+            return per_member(branch_jvp, p, ops, consts, ops_dot, consts_dot)
         # Reverse mode splits a cond into a forward cond that returns the residuals of
         # both branches (the branch not taken returns zeros in the other's slots) and a
         # backward cond that reads them. A branch checkpointed inside the cond still adds
@@ -134,24 +144,8 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         # every step of the backward pass. Here the whole linearisation of each branch is
         # checkpointed, so its residuals are its operands and nothing else (and what
         # ``saved`` names).
-        p, ops, consts = primals
-        _, ops_dot, consts_dot = tangents
-
         def linearised(take):
-            def run(o, c, o_dot, c_dot):
-                # The taken branch alone (until 2026-12-02, a cond of both with a constant
-                # predicate, which had measured 6-9% faster on the ball's gradient on
-                # 2026-11-25). Each linearisation then traced both branches: four branch
-                # JVPs a nested level instead of two. Side by side (benchmarks/ab.py, 5 rounds):
-                # the same values to the last bit, run times within noise (the ball's
-                # gradient 3.555 against 3.512 ms by minima, 3.857 against 3.931 by medians;
-                # the dropped box's 132.5 against 128.3, 134.8 against 133.3), and the
-                # gradients' programs smaller and faster to trace: the ball's 49,228 -> 40,904
-                # lines of StableHLO (10.8 -> 9.6 s), the box's 86,853 -> 62,314 (30.6 -> 22.5
-                # s), one resolve_impacts of a box landing on a corner 46,597 -> 26,898 (21.1 ->
-                # 13.9 s).
-                return jax.jvp(lambda o, c: run_branch(take, o, c), (o, c), (o_dot, c_dot))
-            return jax.checkpoint(run, policy=saved)
+            return jax.checkpoint(branch_jvp(take), policy=saved)
 
         # The cond itself inside a checkpoint as well: its residuals are then the operands as
         # they are, not the cond's outputs (a cond's partial evaluation returns even its
