@@ -37,6 +37,9 @@ Programs (``--programs``, comma-separated; all by default)
     * ``drop``: the box of ``slide`` dropped from 0.5 m clearance onto a face, tilted 0.1 rad,
       e = 0.5, 1000 steps, float64: forward and gradient (mostly flight, four slots once it
       lands: the counterpart of ``ball``).
+    * ``ensemble``: 8 balls of ``ball``'s scene dropped from 0.15 to 0.6 m clearance,
+      vmapped, 300 steps, float64: forward and gradient with respect to the shared params
+      (the members land at different steps: a multi-experiment fit's loss).
 
 How to run (from the repository root)
     python benchmarks/ab.py HEAD WORKTREE               # the uncommitted change
@@ -69,7 +72,7 @@ from _machine import record_header, write_results  # noqa: E402
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 DEFAULT_OUT = HERE / "results"
-PROGRAMS = ("ball", "stack", "slide", "roll", "drop")
+PROGRAMS = ("ball", "stack", "slide", "roll", "drop", "ensemble")
 
 
 def progress(message: str) -> None:
@@ -219,13 +222,34 @@ def drop_programs(rb, steps: int) -> dict:
                              orientation=tilt, velocity=(0.3, 0.0, 0.0))
 
 
+def ensemble_programs(rb, members: int, steps: int) -> dict:
+    """Forward and gradient (with respect to the shared params) of an ensemble: ``members``
+    balls of ``ball``'s scene dropped from 0.15 to 0.6 m clearance, vmapped, ``steps`` steps,
+    float64. They land at different steps, so the members' branches disagree now and then."""
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    params = scene.params(restitution=0.8, friction=0.5, dtype=jnp.float64)
+    starts = [step.prepare(scene.state(params, position=(0.0, 0.0, z), velocity=(0.3, 0.0, 0.0),
+                                       angular_velocity=(0.0, 2.0, 0.0))) for z in np.linspace(0.15, 0.6, members)]
+    states = jax.tree.map(lambda *x: jnp.stack(x), *starts)
+
+    def loss(p, s):
+        return jnp.sum(jax.vmap(lambda s: rb.rollout(step, p, s, steps)[1].position[:, 0, 2])(s))
+
+    forward, fwd_cost = compiled(loss, params, states)
+    gradient, grad_cost = compiled(jax.grad(loss), params, states)
+    return {"ensemble fwd": (forward, (params, states), fwd_cost),
+            "ensemble grad": (gradient, (params, states), grad_cost)}
+
+
 def build(rb, names, quick: bool) -> dict:
     """``name: (compiled program, args, costs or None)`` for the ``names`` asked for."""
     makers = {"ball": lambda: ball_programs(rb, 100 if quick else 1000),
               "stack": lambda: stack_programs(rb, 20 if quick else 200),
               "slide": lambda: slide_programs(rb, 40 if quick else 400),
               "roll": lambda: roll_programs(rb, 40 if quick else 400),
-              "drop": lambda: drop_programs(rb, 100 if quick else 1000)}
+              "drop": lambda: drop_programs(rb, 100 if quick else 1000),
+              "ensemble": lambda: ensemble_programs(rb, 2 if quick else 8, 50 if quick else 300)}
     programs = {}
     for name in names:
         programs.update(makers[name]())
@@ -287,7 +311,8 @@ def summarise(versions: dict, times: dict) -> dict:
     ratios = {}
     for tag, key in ((a, "a"), (b, "b")):
         for pair in (("ball grad", "ball fwd"), ("ball flight grad", "ball flight fwd"), ("slide grad", "slide fwd"),
-                     ("roll grad", "roll fwd"), ("drop grad", "drop fwd")):
+                     ("roll grad", "roll fwd"), ("drop grad", "drop fwd"),
+                     ("ensemble grad", "ensemble fwd")):
             if pair[0] in rows:
                 g, f = times[(tag, pair[0])], times[(tag, pair[1])]
                 ratios.setdefault(f"{pair[0]} / fwd", {})[key] = {"min": g.min() / f.min(),

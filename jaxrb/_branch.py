@@ -10,20 +10,34 @@ member (both run only when the members disagree). An ensemble of similar environ
 mostly agrees, and then costs what one environment does in kernels.
 
 Derivatives are those of ``lax.cond`` (a ``jax.custom_jvp`` whose rule differentiates
-the plain ``lax.cond``), so ``grad`` and ``jvp`` are unchanged. A derivative *of* a ``vmap``
-(``grad`` of an ensemble's loss, or of the contact solver's own ``vmap`` over a colour's
-pairs) batches that rule: it then differentiates each branch under a ``lax.cond`` of its
-own on whether any member takes it, and selects per member, as the batching rule does
-(until 2026-12-03 the rule's ``lax.cond`` became a ``select``, and every member ran both
-branches' JVPs). So does ``jax.vmap(jax.grad(f))``, traced in one go. A ``vmap`` of a
-derivative traced on its own first (``jax.vmap(jax.jit(jax.grad(f)))``) batches that
-derivative's plain ``lax.cond`` and runs both branches, as before. With
-``recompute_in_reverse`` each branch's JVP is checkpointed: the same values and
-derivatives, and fewer residuals in reverse mode.
+the branch taken), so ``grad`` and ``jvp`` are unchanged. A derivative *of* a ``vmap``
+(``grad`` of an ensemble's loss) batches that rule, and a plain ``lax.cond`` in it became a
+``select``: every member ran both branches' JVPs (until 2026-12-03; the 8-ball ensemble
+of ``benchmarks/ab.py``: 300 steps' gradient in ~400 ms against ~3 ms forward). The rule
+takes a per-member form instead (:func:`member_switch`: each branch's JVP under a
+``lax.cond`` on whether any member takes it, then a select per member) when it can tell
+that it is batched:
+
+* traced under the ``vmap`` itself: a ``vmap`` written around the code (the contact
+  solver's over a colour's pairs), ``jax.grad`` of it, ``jax.vmap(jax.grad(f))`` traced in
+  one go;
+* within :func:`members_differentiated`, which ``rollout`` enters when a ``vmap`` batches
+  its params or state. A ``vmap`` over a program already traced (a ``jit`` or a ``scan``
+  inside it: ``rollout`` is both) batches the rules *after* tracing them unbatched, so
+  they cannot see it themselves.
+
+Not covered: a ``vmap`` of a derivative traced on its own first
+(``jax.vmap(jax.jit(jax.grad(f)))``), and a user's own ``lax.scan`` of ``Step`` calls under
+``vmap``. Those run both branches' derivatives, with the same values. Unbatched, the
+per-member form is exact but costs more, so it is not the only form (see
+:func:`members_differentiated`). With ``recompute_in_reverse`` each branch's JVP is
+checkpointed: the same values and derivatives, and fewer residuals in reverse mode.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from collections.abc import Callable
 
 import jax
@@ -31,7 +45,38 @@ import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex_core
 
-__all__ = ["branch"]
+__all__ = ["branch", "member_cond", "member_switch", "members_differentiated"]
+
+#: Whether the derivative rules traced now belong to an ensemble (see
+#: :func:`members_differentiated`).
+_MEMBERS = contextvars.ContextVar("jaxrb_members_differentiated", default=False)
+
+
+@contextlib.contextmanager
+def members_differentiated(on: bool = True):
+    """Within the ``with``, derivative rules traced (:func:`branch`'s, :func:`member_switch`'s)
+    take the per-member form, as if their predicate were batched.
+
+    For code that a ``vmap`` batches as a whole program (a ``jit`` or ``scan`` inside it):
+    there JAX traces each rule unbatched and batches the traced rule afterwards, so a rule
+    cannot see the batching, and a plain ``lax.cond`` in it becomes a ``select`` (every
+    member runs both branches' derivatives). The caller that sees the ``vmap``
+    (``rollout``, which knows whether its params or state are batched) says so here. The
+    per-member form is exact either way; unbatched it costs a second ``cond`` and a select
+    per output (the ball's gradient: 76.8 -> 83.4 kernels a step), which is why it is not
+    the only form.
+    """
+    token = _MEMBERS.set(bool(on))
+    try:
+        yield
+    finally:
+        _MEMBERS.reset(token)
+
+
+def any_batched(tree) -> bool:
+    """Whether a ``vmap`` batches any array leaf of ``tree`` here (at trace time). (The probe
+    sees each leaf's value, without its tangent: a ``custom_vmap`` has no reverse mode.)"""
+    return any(_is_batched(jax.lax.stop_gradient(x)) for x in jax.tree.leaves(tree) if isinstance(x, jax.Array))
 
 
 def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_reverse: bool = False,
@@ -62,8 +107,13 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
     # each of its conds runs, binds that branch alone. (One jaxpr of the whole cond,
     # evaluated with a constant predicate, carried both branches into each: a 64-member
     # stack's rollout lowered to 28,524 lines of StableHLO, 14,176 now.)
+    # In the per-member mode each function is traced afresh (a new wrapper): a function
+    # traced before for the same shapes (JAX caches by function) would bring the rules of
+    # the branches nested in it, traced and memoised in the other mode.
+    fresh = _MEMBERS.get()
     (true_jaxpr, true_shape), (false_jaxpr, false_shape) = (
-        jax.make_jaxpr(fn, return_shape=True)(*operands) for fn in (true_fn, false_fn))
+        jax.make_jaxpr((lambda *a, fn=fn: fn(*a)) if fresh else fn, return_shape=True)(*operands)
+        for fn in (true_fn, false_fn))
     out_tree = jax.tree.structure(true_shape)
     if jax.tree.structure(false_shape) != out_tree:
         raise TypeError(f"branch: true_fn and false_fn must return the same structure, got {out_tree} "
@@ -106,15 +156,6 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
 
     differentiable = jax.custom_jvp(batched)
 
-    def per_member(linearised, p, *args):
-        """The rule's cond where ``p`` is batched (the rule is being vmapped): each branch
-        under a cond on whether any member takes it (a predicate ``vmap`` leaves unbatched,
-        so the cond stays a cond), then a select per member, as ``_rule`` does."""
-        idle = lambda *_: (jax.tree.map(_zeros, out_shape), jax.tree.map(_tangent_zeros, out_shape))  # noqa: E731
-        a = jax.lax.cond(_any_member(p), linearised(True), idle, *args)
-        b = jax.lax.cond(_any_member(~p), linearised(False), idle, *args)
-        return jax.tree.map(lambda x, y: x if x.dtype == jax.dtypes.float0 else jnp.where(p, x, y), a, b)
-
     def branch_jvp(take: bool):
         """The JVP of the branch ``take`` names, alone: ``(o, c, o_dot, c_dot) -> (out, out_dot)``."""
         # (Until 2026-12-02, a cond of both with a constant predicate, which had measured
@@ -133,9 +174,7 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         p, ops, consts = primals
         _, ops_dot, consts_dot = tangents
         if not recompute_in_reverse:
-            if not _is_batched(p):
-                return jax.jvp(evaluate, primals, tangents)
-            return per_member(branch_jvp, p, ops, consts, ops_dot, consts_dot)
+            return member_cond(p, branch_jvp(True), branch_jvp(False), ops, consts, ops_dot, consts_dot)
         # Reverse mode splits a cond into a forward cond that returns the residuals of
         # both branches (the branch not taken returns zeros in the other's slots) and a
         # backward cond that reads them. A branch checkpointed inside the cond still adds
@@ -154,10 +193,10 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         # impact pass's eight sweeps, 14 arrays a sweep (``python benchmarks/kernels.py
         # --scene impact``: with the impact pass recomputed, its reverse pass 300.1 -> 288.2
         # kernels a step, the same gradient to the last bit).
-        if _is_batched(p):
-            return jax.checkpoint(lambda *a: per_member(linearised, *a), policy=saved)(p, ops, consts, ops_dot,
-                                                                                       consts_dot)
-        return jax.checkpoint(lambda *a: jax.lax.cond(a[0], linearised(True), linearised(False), *a[1:]),
+        # (The form is read here: inside the checkpoint's trace ``p`` looks unbatched.)
+        per_member = _per_member(p)
+        return jax.checkpoint(lambda *a: member_cond(a[0], linearised(True), linearised(False), *a[1:],
+                                                     per_member=per_member),
                               policy=saved)(p, ops, consts, ops_dot, consts_dot)
 
     return differentiable(pred, tuple(operands), (tuple(true_jaxpr.consts), tuple(false_jaxpr.consts)))
@@ -181,15 +220,49 @@ def _as(x, like: jax.ShapeDtypeStruct):
     return x
 
 
+def member_switch(index, branches, *operands, per_member: bool | None = None):
+    """``lax.switch(index, branches, *operands)`` for code a custom rule runs (a JVP rule,
+    or :func:`branch`'s own), where :func:`branch`, itself a custom rule, does not fit:
+    under ``jax.vmap`` with a batched ``index`` each branch runs under a ``lax.cond`` of its
+    own on whether any member takes it, and a select per member picks the outputs (a
+    plain ``lax.switch`` became a ``select`` there, and every member ran every branch).
+
+    ``index``: int or bool scalar in ``[0, len(branches))``. The batching is read when this
+    is called, so call it in the rule itself, not inside a branch of a ``lax.cond`` that
+    the rule runs (there the operands it closes over look unbatched, and the plain
+    ``lax.switch`` is taken, which is correct but runs every branch), or pass the form
+    read there as ``per_member``.
+    """
+    if not (_per_member(index) if per_member is None else per_member):
+        return jax.lax.switch(index, branches, *operands)
+    return _per_member_switch(jnp.asarray(index).astype(jnp.int32), branches, *operands)
+
+
+def member_cond(pred, true_fn: Callable, false_fn: Callable, *operands, per_member: bool | None = None):
+    """``lax.cond(pred, true_fn, false_fn, *operands)`` as :func:`member_switch` runs a switch."""
+    if not (_per_member(pred) if per_member is None else per_member):
+        return jax.lax.cond(pred, true_fn, false_fn, *operands)
+    return _per_member_switch(jnp.asarray(pred).astype(jnp.int32), [false_fn, true_fn], *operands)
+
+
+def _per_member(index) -> bool:
+    return _MEMBERS.get() or _is_batched(index)
+
+
+def _per_member_switch(index, branches, *operands):
+    """:func:`member_switch`'s per-member form."""
+    shape = jax.eval_shape(branches[0], *operands)
+    idle = lambda *_: jax.tree.map(_zeros, shape)  # noqa: E731
+    outs = [jax.lax.cond(_any_member(index == k), fn, idle, *operands) for k, fn in enumerate(branches)]
+    return jax.tree.map(lambda *x: x[0] if x[0].dtype == jax.dtypes.float0 else jnp.select(
+        [index == k for k in range(1, len(x))], list(x[1:]), x[0]), *outs)
+
+
 def _zeros(like: jax.ShapeDtypeStruct):
+    """Zeros of ``like``'s type (a ``float0`` tangent's too)."""
+    if like.dtype == jax.dtypes.float0:
+        return np.zeros(like.shape, jax.dtypes.float0)
     return jnp.zeros(like.shape, like.dtype)
-
-
-def _tangent_zeros(like: jax.ShapeDtypeStruct):
-    """The zero tangent of a value of ``like``'s type (``float0`` for integers and booleans)."""
-    if jnp.issubdtype(like.dtype, jnp.inexact):
-        return jnp.zeros(like.shape, like.dtype)
-    return np.zeros(like.shape, jax.dtypes.float0)
 
 
 def _is_batched(x) -> bool:

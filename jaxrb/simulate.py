@@ -19,7 +19,7 @@ import jax
 import jax.flatten_util
 import jax.numpy as jnp
 
-from ._branch import branch
+from ._branch import any_batched, branch, members_differentiated
 from ._static import positive_count, static_step_length, static_switch
 from .contact import ContactSettings
 from .contact._penetration import penetration, thinnest_size
@@ -212,7 +212,11 @@ def _with_tangent_of_jvp(primals, tangents):
 
 
 @eqx.filter_jit
-def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: bool):
+def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: bool, members: bool = False):
+    """:func:`rollout`'s loop, for one member (``members``: whether it is one of an
+    ensemble's; static, so that each form of the derivative rules has a trace of its own:
+    see :func:`rollout`)."""
+    del members
     chunk = 1
     if isinstance(step, Step) and save_every == 1 and not checkpoint:
         chunk = _chunk_length(state, num_steps)
@@ -541,6 +545,12 @@ def rollout(
         comes first and the leading axis is one longer. Quantities derived from a
         trajectory come from ``jax.vmap``, e.g.
         ``jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, trajectory)``.
+
+    Under ``jax.vmap`` (an ensemble), derivatives skip what no member needs, as the
+    forward does (a step's contact work where every member flies, a converged solve's
+    sweeps; see ``jaxrb/_branch.py``). That holds for ``jax.grad`` of a vmapped loss, not
+    for ``jax.vmap`` of a gradient compiled on its own (``jax.vmap(jax.jit(jax.grad(f)))``),
+    which gives the same values more slowly.
     """
     # Any integer type (np.int64 from a config array too), as a Python int: they are static.
     num_steps, save_every = positive_count("num_steps", num_steps), positive_count("save_every", save_every)
@@ -555,7 +565,11 @@ def rollout(
         state = step.prepare(state)
     else:
         _check_carried_form(step, params, state)
-    final, trajectory = _rollout(step, params, state, num_steps, save_every, checkpoint)
+    # The vmap, if any, is seen here, outside the jit: inside it the loop is traced for one
+    # member, and the derivative rules with it (see _branch.members_differentiated).
+    members = any_batched((params, state))
+    with members_differentiated(members):
+        final, trajectory = _rollout(step, params, state, num_steps, save_every, checkpoint, members)
     if include_initial:
         trajectory = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, trajectory)
     return final, trajectory

@@ -182,6 +182,99 @@ def test_the_derivative_of_a_vmapped_branch_skips_a_branch_no_member_takes(recom
     assert not calls
 
 
+@pytest.mark.parametrize("recompute_in_reverse", [False, True])
+def test_a_vmapped_program_traced_before_its_vmap_skips_in_its_derivative_where_told(recompute_in_reverse):
+    """A ``vmap`` over a loop (or a ``jit``) batches the rules after they were traced for one
+    member, so they cannot see it: there the derivative ran both branches for every member,
+    unless the caller says it is an ensemble's (``members_differentiated``, as ``rollout``
+    does). Values as ``lax.cond``'s either way."""
+    from jaxrb._branch import members_differentiated
+
+    calls = []
+    f = _counted_cond(calls, recompute_in_reverse)
+
+    def looped(g):
+        def member(p, x, y):  # three steps of a loop whose body holds the branch
+            def body(c, _):
+                a, b = g(p, c, y)
+                return c + 0.1 * a + 0.2 * b, None
+            return jnp.sum(jax.lax.scan(body, x, None, length=3)[0])
+        return lambda x, y, p: jnp.sum(jax.vmap(member)(p, x, y))
+
+    x, y = jnp.array([0.3, -1.2, 2.0]), jnp.array([1.5, 0.7, -0.4])
+    for told in (False, True):
+        for pred in ([False] * 3, [False, True, False]):
+            pred = jnp.array(pred)
+            with members_differentiated(told):
+                compiled = jax.jit(jax.grad(looped(f), (0, 1)))
+                got = compiled(x, y, pred)
+            calls.clear()
+            got = jax.block_until_ready(compiled(x, y, pred))
+            want = jax.grad(looped(_reference), (0, 1))(x, y, pred)
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_allclose(g, w, rtol=1e-14, atol=1e-15)
+            if told or bool(jnp.any(pred)):
+                assert (len(calls) > 0) == bool(jnp.any(pred)), (told, pred, len(calls))
+            else:  # not told: the first branch's derivative runs though no member takes it
+                assert len(calls) > 0
+
+
+def test_rollout_tells_the_derivative_rules_whether_it_is_vmapped():
+    """``rollout`` reads the ``vmap`` outside its ``jit`` and traces its loop in the
+    per-member form when its params or state are batched (and only then)."""
+    from jaxrb import _branch
+
+    seen = []
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+
+    def recorded():  # a new step function each time, so that rollout traces it afresh
+        return lambda p, s: (seen.append(_branch._MEMBERS.get()), step(p, s))[1]
+
+    params, state = scene.params(), scene.state()
+    states = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+    masses = jax.vmap(lambda m: scene.params(mass=m))(jnp.array([1.0, 2.0]))
+    for run, want in ((lambda f: rb.rollout(f, params, state, 2), False),
+                      (lambda f: jax.vmap(lambda s: rb.rollout(f, params, s, 2))(states), True),
+                      (lambda f: jax.vmap(lambda p: rb.rollout(f, p, state, 2))(masses), True),
+                      (lambda f: jax.grad(lambda p: jnp.sum(jax.vmap(
+                          lambda s: rb.rollout(f, p, s, 2)[0].position)(states)))(params), True)):
+        seen.clear()
+        run(recorded())
+        # (The first entry is rollout's check of the step's output, outside its jit.)
+        assert len(seen) > 1 and all(x == want for x in seen[1:]), (want, seen)
+    assert not _branch._MEMBERS.get()
+
+
+@pytest.mark.slow
+def test_an_ensembles_gradient_through_contacts_is_its_members_gradients():
+    """Members in different contact states at once (one flying, one bouncing, one resting,
+    one sliding), so that every per-member branch of the contact step's derivative runs
+    mixed: the ensemble's gradient is the sum of the members' own."""
+    with jax.enable_x64(True):
+        scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+        step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+        params = scene.params(restitution=0.8, friction=0.5, dtype=jnp.float64)
+        starts = [((0.0, 0.0, 0.6), (0.0, 0.0, 0.0)), ((0.0, 0.0, 0.105), (0.3, 0.0, -0.5)),
+                  ((0.0, 0.0, 0.1), (0.0, 0.0, 0.0)), ((0.0, 0.0, 0.1), (1.0, 0.0, 0.0))]
+        states = [step.prepare(scene.state(params, position=x, velocity=v)) for x, v in starts]
+
+        def member_loss(p, s):
+            traj = rb.rollout(step, p, s, 60)[1]
+            return jnp.sum(traj.position[:, 0, :]) + jnp.sum(traj.velocity[:, 0, :])
+
+        batched = jax.tree.map(lambda *x: jnp.stack(x), *states)
+        got = jax.jit(jax.grad(lambda p, s: jnp.sum(jax.vmap(member_loss, (None, 0))(p, s)), (0, 1)))(params, batched)
+        grad_member = jax.jit(jax.grad(member_loss, (0, 1)))
+        members = [grad_member(params, s) for s in states]
+        want_params = jax.tree.map(lambda *g: sum(g), *[m[0] for m in members])
+        want_states = jax.tree.map(lambda *g: jnp.stack(g), *[m[1] for m in members])
+        for g, w in zip(jax.tree.leaves((got[0], got[1])), jax.tree.leaves((want_params, want_states)), strict=True):
+            if jnp.issubdtype(jnp.result_type(w), jnp.floating):
+                np.testing.assert_allclose(g, w, rtol=1e-10, atol=1e-12)
+        assert np.all(np.isfinite(got[0].restitution)) and float(jnp.abs(got[0].restitution[0])) > 0
+
+
 def _primitive_count(jaxpr, name: str) -> int:
     """How many ``name`` equations a jaxpr holds, sub-jaxprs (cond branches, scans) included."""
     count = 0

@@ -42,7 +42,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float
 
 from .. import spatial
-from .._branch import branch
+from .._branch import branch, member_cond, member_switch
 from .._indexing import literal_array
 from ._coulomb import (
     coulomb_impulse,
@@ -838,10 +838,11 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         return (velocity, omega, lam, count), (*jax.checkpoint(unrolled)(None), jnp.zeros_like(count))
     # (The convergence test costs a sweep: not run in flight, nor when the sweeps stopped early.)
     any_active = jnp.any(active)
-    settled = any_active & jax.lax.cond(any_active & (count >= iterations), converged,
-                                        lambda _: True, None)
+    settled = any_active & member_cond(any_active & (count >= iterations), converged, lambda _: True, None)
     branch = jnp.where(any_active, jnp.where(settled, 1, 2), 0)
     # The branches under ``jax.checkpoint``: a switch's linearisation zero-fills the residuals
     # of the branches not taken, copied at every step; a checkpoint's are just its inputs.
-    tangent = jax.lax.switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], None)
+    # member_switch: under a vmap (an ensemble's gradient) a plain switch ran all three for
+    # every member, the sweep-by-sweep derivative above all (see member_switch).
+    tangent = member_switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], None)
     return (velocity, omega, lam, count), (*tangent, jnp.zeros_like(count))
