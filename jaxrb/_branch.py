@@ -21,8 +21,8 @@ that it is batched:
 * traced under the ``vmap`` itself: a ``vmap`` written around the code (the contact
   solver's over a colour's pairs), ``jax.grad`` of it, ``jax.vmap(jax.grad(f))`` traced in
   one go;
-* within :func:`members_differentiated`, which ``rollout`` enters when a ``vmap`` batches
-  its params or state. A ``vmap`` over a program already traced (a ``jit`` or a ``scan``
+* within :func:`members_differentiated`, which ``rollout`` and ``Step.__call__`` enter
+  when a ``vmap`` batches their params or state. A ``vmap`` over a program already traced (a ``jit`` or a ``scan``
   inside it: ``rollout`` is both) batches the rules *after* tracing them unbatched, so
   they cannot see it themselves.
 

@@ -63,15 +63,26 @@ class Step(eqx.Module):
             state = dataclasses.replace(state, contact_impulse=initial_impulses(self.scene, state.position.dtype))
         return state
 
-    @eqx.filter_jit
     def __call__(self, params: Params, state: State) -> State:
+        # As rollout does: a vmap seen here, outside the jit, traces the step's derivative
+        # rules in their per-member form (jax.grad of a vmapped step skips what no member
+        # needs). Under a user's own scan the step is traced for one member and cannot see it.
+        members = any_batched((params, state))
+        with members_differentiated(members):
+            return self._call(params, state, members)
+
+    @eqx.filter_jit
+    def _call(self, params: Params, state: State, members: bool) -> State:
+        # ``members`` is static: each form of the derivative rules has a trace of its own.
         # Reverse mode through a user's own loop of steps recomputes each step from its
         # input state (and, with contacts, the solves' saved solutions), as rollout's loop
         # does, instead of stacking its intermediates: with contacts, the residuals of both
         # branches of its lax.cond; without, those of the integrator (a tumbling box's
         # 1000-step gradient through jax.lax.scan: 6.4 -> 4.6 ms, benchmarks/README.md,
         # "One recomputation of the rotations").
-        advance = jax.checkpoint(self.advance, policy=SAVE_NAMED)
+        # (For an ensemble a new function: JAX caches the checkpoint's trace by function, and
+        # one traced for a single member would bring the rules of that form.)
+        advance = jax.checkpoint((lambda *a: self.advance(*a)) if members else self.advance, policy=SAVE_NAMED)
         return advance(params, state, self.integrator.precompute(params))
 
     def advance(self, params: Params, state: State, derived) -> State:

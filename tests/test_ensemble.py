@@ -246,6 +246,26 @@ def test_rollout_tells_the_derivative_rules_whether_it_is_vmapped():
     assert not _branch._MEMBERS.get()
 
 
+def test_a_step_tells_the_derivative_rules_whether_it_is_vmapped(monkeypatch):
+    """``Step.__call__`` does as ``rollout`` does, for a ``vmap`` of a step itself: the rules
+    traced with the derivative of a vmapped step take the per-member form."""
+    from jaxrb import _branch
+
+    seen = []
+    real = _branch._per_member
+    monkeypatch.setattr(_branch, "_per_member", lambda p: (seen.append(_branch._MEMBERS.get()), real(p))[1])
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    params = scene.params()
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    states = jax.vmap(lambda z: step.prepare(scene.state(params, position=jnp.stack([0.0, 0.0, z]))))(
+        jnp.array([0.1, 0.5]))
+    # Traced only: the rules are traced with the derivative, nothing to compile. (The
+    # unbatched form: every single-body gradient test; rollout's choice of form: above.)
+    jax.make_jaxpr(jax.grad(lambda p: jnp.sum(jax.vmap(step, (None, 0))(p, states).position)))(params)
+    assert seen and all(seen), seen
+    assert not _branch._MEMBERS.get()
+
+
 @pytest.mark.slow
 def test_an_ensembles_gradient_through_contacts_is_its_members_gradients():
     """Members in different contact states at once (one flying, one bouncing, one resting,
