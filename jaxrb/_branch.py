@@ -22,9 +22,9 @@ that it is batched:
   solver's over a colour's pairs), ``jax.grad`` of it, ``jax.vmap(jax.grad(f))`` traced in
   one go;
 * within :func:`members_differentiated`, which ``rollout`` and ``Step.__call__`` enter
-  when a ``vmap`` batches their params or state. A ``vmap`` over a program already traced (a ``jit`` or a ``scan``
-  inside it: ``rollout`` is both) batches the rules *after* tracing them unbatched, so
-  they cannot see it themselves.
+  when a ``vmap`` batches their params or state. A ``vmap`` over a program already
+  traced (a ``jit`` or a ``scan`` inside it: ``rollout`` is both) batches the rules
+  *after* tracing them unbatched, so they cannot see it themselves.
 
 Not covered: a ``vmap`` of a derivative traced on its own first
 (``jax.vmap(jax.jit(jax.grad(f)))``), and a user's own ``lax.scan`` of ``Step`` calls under
@@ -251,6 +251,8 @@ def _per_member(index) -> bool:
 
 def _per_member_switch(index, branches, *operands):
     """:func:`member_switch`'s per-member form."""
+    # Clamped into range, as lax.switch clamps its index.
+    index = jnp.clip(index, 0, len(branches) - 1)
     shape = jax.eval_shape(branches[0], *operands)
     idle = lambda *_: jax.tree.map(_zeros, shape)  # noqa: E731
     outs = [jax.lax.cond(_any_member(index == k), fn, idle, *operands) for k, fn in enumerate(branches)]

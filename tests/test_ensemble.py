@@ -219,6 +219,21 @@ def test_a_vmapped_program_traced_before_its_vmap_skips_in_its_derivative_where_
                 assert len(calls) > 0
 
 
+def test_the_per_member_switch_clamps_its_index_as_lax_switch_does():
+    """``member_switch``'s per-member form takes an index out of range as ``lax.switch``
+    does: clamped to the first or the last branch (before, an index past the last took the
+    first branch's value, or zeros where no member took the first)."""
+    from jaxrb._branch import member_switch
+
+    branches = [lambda x: x + 1.0, lambda x: 2.0 * x, lambda x: x - 3.0]
+    index = jnp.array([-2, 0, 1, 2, 7])
+    x = jnp.array([0.5, -1.0, 2.0, 4.0, 1.5])
+    got = jax.vmap(lambda i, x: member_switch(i, branches, x, per_member=True))(index, x)
+    want = jax.vmap(lambda i, x: jax.lax.switch(i, branches, x))(index, x)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got, [1.5, 0.0, 4.0, 1.0, -1.5])
+
+
 def test_rollout_tells_the_derivative_rules_whether_it_is_vmapped():
     """``rollout`` reads the ``vmap`` outside its ``jit`` and traces its loop in the
     per-member form when its params or state are batched (and only then)."""
