@@ -128,6 +128,17 @@ def test_gradients_benchmark_quick(tmp_path):
     assert (tmp_path / "gradients.png").stat().st_size > 0
 
 
+def test_gradient_spread_benchmark_quick(tmp_path):
+    record = load("gradient_spread").main(["--quick", "--out", str(tmp_path)])
+    rows = record["results"]["float64"]["rows"]
+    assert [r["horizon"] for r in rows] == [30, 60] and all(len(r["values"]) == 2 for r in rows)
+    # 60 steps of free fall from 0.5 m: the loss is smooth there, and the two starts' mass
+    # derivatives agree (gravity does not depend on the mass; only rounding moves them).
+    assert all(abs(r["std"]) <= 1e-9 * max(1.0, abs(r["mean"])) for r in rows)
+    check_header(record)
+    assert (tmp_path / "gradient_spread.png").stat().st_size > 0
+
+
 def test_ab_benchmark_quick(tmp_path):
     """Two versions side by side (here a git revision and this checkout, the same code):
     each is imported, compiled and set aside in turn, and the jaxrb of this process is
