@@ -115,12 +115,12 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="float64 only, 60 steps, 2 starts, temp output dir")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
-    jax.config.update("jax_enable_x64", True)
     steps, horizons, dtypes, starts = 1000, HORIZONS, (jnp.float64, jnp.float32), args.starts
     if args.quick:
         steps, horizons, dtypes, starts = 60, (30, 60), (jnp.float64,), 2
     if starts < 2:
         raise ValueError(f"--starts must be at least 2 (a spread needs two starts), got {starts}")
+    jax.config.update("jax_enable_x64", True)
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)
     out.mkdir(parents=True, exist_ok=True)
     record = {**record_header("gradient_spread.py", argv), "steps": steps, "horizons": list(horizons),

@@ -139,6 +139,11 @@ def test_gradient_spread_benchmark_quick(tmp_path):
     assert (tmp_path / "gradient_spread.png").stat().st_size > 0
 
 
+def test_gradient_spread_benchmark_refuses_fewer_than_two_starts(tmp_path):
+    with pytest.raises(ValueError, match="--starts must be at least 2"):
+        load("gradient_spread").main(["--starts", "1", "--out", str(tmp_path)])
+
+
 def test_ab_benchmark_quick(tmp_path):
     """Two versions side by side (here a git revision and this checkout, the same code):
     each is imported, compiled and set aside in turn, and the jaxrb of this process is
