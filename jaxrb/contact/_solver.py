@@ -777,14 +777,17 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
     their tolerance, or the last one left the impulses unchanged: ``|G(lam*) - lam*| <=
     sqrt(eps) |lam*|``), both are taken there: the same recursion with a constant ``A`` (a
     dense ``3(C+1)`` square, from one batched sweep) and one ``B d theta`` (one tangent
-    sweep), ``k`` times. Reverse mode then crosses one sweep and ``iterations`` small
-    masked matrix products instead of every sweep's intermediates (the ball's gradient:
-    ``benchmarks/gradients.py``). Otherwise (a stack whose sweeps have not converged, where
-    freezing ``A`` was measured 0.2-0.5% off finite differences) the sweeps are
-    differentiated one by one. The warm start's tangent ``d lam_0`` is carried in both
-    (``A^k d lam_0`` when frozen). With ``frozen_derivative=False`` (the split impulse's few
-    sweeps) always the latter, and the derivative program holds neither the frozen branch
-    nor the convergence test.
+    sweep), ``iterations`` times, not only the forward's ``k``: the solution's derivative
+    does not depend on how near the warm start was, but the recursion cut at ``k`` did (from
+    a warm start at the solution, ``k = 1``, it was up to 36% off finite differences:
+    ``tests/test_contact.py::test_the_solve_has_the_same_derivative_from_any_warm_start``).
+    Reverse mode then crosses one sweep and ``iterations`` small matrix products instead
+    of every sweep's intermediates (the ball's gradient: ``benchmarks/gradients.py``).
+    Otherwise (a stack whose sweeps have not converged, where freezing ``A`` was measured
+    0.2-0.5% off finite differences) the sweeps are differentiated one by one. The warm
+    start's tangent ``d lam_0`` is carried in both (``A^iterations d lam_0`` when frozen).
+    With ``frozen_derivative=False`` (the split impulse's few sweeps) always the latter, and
+    the derivative program holds neither the frozen branch nor the convergence test.
     """
     bodies, f, colours, target, mu, active, _ = primals
     d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
@@ -818,8 +821,8 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         _, b_vec = jax.jvp(lambda *theta: sweep(lam, *theta), (bodies, f, target, mu),
                            (d_bodies, d_f, d_target, d_mu))
         d_lam, b_vec = d_lam0.reshape(-1), b_vec.reshape(-1)
-        for j in range(iterations):
-            d_lam = jnp.where(j < count, a_mat @ d_lam + b_vec, d_lam)
+        for _ in range(iterations):
+            d_lam = a_mat @ d_lam + b_vec
         d_lam = d_lam.reshape(shape)
         _, d_end = jax.jvp(apply_impulses, (bodies, f, lam), (d_bodies, d_f, d_lam))
         return d_end.velocity, d_end.angular_velocity, d_lam
