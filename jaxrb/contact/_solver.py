@@ -842,8 +842,10 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         # the frozen recursion does not forget the warm start's tangent along it, and drifts
         # from the derivative of what the sweeps computed (5e-5 of it a step; a spinning,
         # sliding box's mass derivative 1.6e-3 off differences after 200 steps). There, the
-        # sweeps' own derivative. The test: A^(2^m), 2^m >= iterations, by squaring.
-        power = a_mat
+        # sweeps' own derivative. The test: A^(2^m), 2^m >= iterations, by squaring, on the
+        # active slots (the sweeps leave the padding slot as it is: an identity block).
+        kept = jnp.repeat(active, 3).astype(a_mat.dtype)
+        power = a_mat * kept[:, None] * kept[None, :]
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
             power = power @ power
         forgets = jnp.max(jnp.abs(power)) <= FORGOTTEN
