@@ -54,31 +54,38 @@ def _rotate_about_principal_axis(pose, k: int, rate):
 
 @jax.custom_jvp
 def _coupled_turn(q, momentum, coupling):
-    """The flow of a zero off-diagonal inverse inertia: ``q`` unchanged, at no cost.
+    """The flow of a zero off-diagonal inverse inertia: ``(q, P)`` unchanged, at no cost.
 
     ``q`` (4,) the attitude (principal frame to world), ``momentum`` (3,) the body momentum
     ``P`` in the principal frame, ``coupling`` ``(3, 3)`` a sub-flow's duration times the
     off-diagonal part ``W`` of the inverse inertia in the principal frame (s/(kg m^2)),
     exactly zero in value (see :func:`jaxrb.inertia.repeated_moment_coupling`). Its flow
     turns the body at ``W P``: to first order in ``W``, ``q (1, a/2)`` with ``a = coupling
-    P``. So the value is ``q`` itself, and the derivative carries ``d a = d coupling P``
-    (``coupling d P`` is zero). ``P`` turns the opposite way, which a caller that computes
-    ``P`` from ``q`` and the world momentum after the turn gets by the chain rule. Where
-    ``coupling`` is not differentiated the rule adds nothing (a symbolic zero).
+    P``, and the body momentum the opposite way, ``P - a x P`` (the world momentum is
+    unchanged). So the values are ``q`` and ``P`` themselves, and the derivatives carry
+    ``d a = d coupling P`` (``coupling d P`` is zero). Where ``coupling`` is not
+    differentiated the rule adds nothing (a symbolic zero).
+
+    The momentum's turn is in the rule, not left to the caller to recompute from ``q`` and
+    the world momentum: that second rotation of ``L`` into the body frame cost reverse mode
+    a ``quat_rotate`` transpose of its own (about 4 kernels a ball step).
     """
-    del momentum, coupling
-    return q
+    del coupling
+    return q, momentum
 
 
 def _coupled_turn_jvp(primals, tangents):
     q, momentum, _ = primals
-    d_q, _, d_coupling = tangents
+    d_q, d_momentum, d_coupling = tangents
     if type(d_coupling) is SymbolicZero:
-        return q, d_q
+        return (q, momentum), (d_q, d_momentum)
     if type(d_q) is SymbolicZero:
         d_q = jnp.zeros_like(q)
+    if type(d_momentum) is SymbolicZero:
+        d_momentum = jnp.zeros_like(momentum)
     angle = spatial.matvec(d_coupling, momentum)
-    return q, d_q + 0.5 * spatial.quat_multiply(q, jnp.concatenate([jnp.zeros_like(angle[:1]), angle]))
+    d_q = d_q + 0.5 * spatial.quat_multiply(q, jnp.concatenate([jnp.zeros_like(angle[:1]), angle]))
+    return (q, momentum), (d_q, d_momentum - spatial.cross(angle, momentum))
 
 
 _coupled_turn.defjvp(_coupled_turn_jvp, symbolic_zeros=True)
@@ -198,11 +205,11 @@ class SymplecticSplitting(Integrator):
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
             # The repeated moments' coupling (zero, with a derivative) turns the body for half
             # the step on either side of the chain: symmetric, so its derivative is second
-            # order too. The momentum is taken after the first turn, which turns it with the
-            # body (the same value: the turn is the identity).
-            q = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * coupling)
-            pose = sub_rotations(inverse_moments, q, spatial.quat_rotate_inverse(q, l_world))
-            q = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * coupling)
+            # order too. The first turn turns the body momentum with the body (the same
+            # value: the turn is the identity).
+            q, momentum = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * coupling)
+            pose = sub_rotations(inverse_moments, q, momentum)
+            q, _ = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * coupling)
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
             return spatial.quat_normalize(q)
 
