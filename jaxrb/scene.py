@@ -637,6 +637,27 @@ class Scene:
                 f"pairs {list(self.contact_pairs)}."
             )
 
+    def _warn_inside_planes(self, position: np.ndarray) -> None:
+        """Warn for each body in a contact pair with a plane whose centre ``position[i]`` (m)
+        lies on that plane's solid side (``normal . x < offset``). A wall given with its
+        normal pointing out of the free space makes the whole free side solid, and the
+        contact step then pushes every body out of it at once. (A warning, not an error: a
+        deliberately deep start is how ``make_step(..., debug=True)`` is tried out.)"""
+        planes, index = self.planes, {name: i for i, name in enumerate(self.body_names)}
+        for body, plane_name in self.contact_pairs:
+            if plane_name not in planes:
+                continue
+            plane = planes[plane_name]
+            depth = plane.offset - float(np.dot(plane.normal, position[index[body]]))
+            if depth > 0:
+                flipped = _plane_repr([-x for x in plane.normal], -plane.offset)
+                warnings.warn(
+                    f"Body {body!r} starts with its centre {depth:.3g} m inside {plane_name!r}, on its solid side: "
+                    f"{_plane_repr(plane.normal, plane.offset)} is solid where normal . x < offset, and the contact "
+                    f"step will push the body out at once. If the plane should keep bodies on the side where this "
+                    f"one is, give it the opposite normal and offset: {flipped}.",
+                    UserWarning, stacklevel=3)
+
     def state(
         self,
         params: Params | None = None,
@@ -687,6 +708,8 @@ class Scene:
                              f"angular_momentum; got {given}.")
         zeros3 = np.zeros(3)
         position = self._per_body("position", position, (3,), zeros3, dtype)
+        if not _is_traced(position):
+            self._warn_inside_planes(np.asarray(position, dtype=float))
         velocity = self._per_body("velocity", velocity, (3,), zeros3, dtype)
         orientation = self._per_body("orientation", orientation, (4,), np.array([1.0, 0, 0, 0]), dtype)
         if not _is_traced(orientation):
@@ -721,6 +744,10 @@ class Scene:
             angular_momentum=l_world,
             time=time,
         )
+
+
+def _plane_repr(normal, offset) -> str:
+    return f"rb.Plane(({', '.join(f'{x + 0.0:.6g}' for x in normal)}), {offset + 0.0:.6g})"  # + 0.0: no -0
 
 
 def _checked_extra(extra):

@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import jax
@@ -1131,6 +1132,27 @@ def test_walls_are_checked_and_named_like_the_ground():
     assert hash(scene) == hash(rb.Scene([body], walls=dict(WALLS), contacts=[("ball", "west")]))
 
 
+def test_a_body_started_on_a_planes_solid_side_is_warned_of_with_the_flipped_plane():
+    """A wall given with its normal out of the free space makes the free side solid: a body
+    whose centre starts on a plane's solid side is warned of, with the plane to give
+    instead. Bodies on the free side, bodies in no pair with the plane, and traced positions
+    are not."""
+    body = rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)
+    wrong = rb.Scene([body], ground=rb.Plane(), walls={"wall": rb.Plane((1.0, 0.0, 0.0), 0.5)}, contacts="all")
+    with pytest.warns(UserWarning, match=r"'ball' starts with its centre 0\.5 m inside 'wall'.*"
+                                         r"opposite normal and offset: rb\.Plane\(\(-1, 0, 0\), -0\.5\)\."):
+        wrong.state(position=(0.0, 0.0, 0.5))
+    right = rb.Scene([body], ground=rb.Plane(), walls={"wall": rb.Plane((-1.0, 0.0, 0.0), -0.5)}, contacts="all")
+    unpaired = rb.Scene([body], walls={"wall": rb.Plane((1.0, 0.0, 0.0), 0.5)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        right.state(position=(0.0, 0.0, 0.5))
+        unpaired.state(position=(0.0, 0.0, 0.5))
+        jax.jit(lambda p: wrong.state(position=p).position)(jnp.array([0.0, 0.0, 0.5]))
+    with pytest.warns(UserWarning, match=r"0\.2 m inside 'ground'"):
+        right.state(position=(0.0, 0.0, -0.2))
+
+
 @pytest.mark.parametrize("dt", [1e-3, 1e-2])
 def test_sliding_box_stops_at_the_coulomb_distance(dt):
     """v0 = 5 m/s, mu = 0.5: it stops after v0^2 / (2 mu g) = 2.54842 m, within v0 h; no twist."""
@@ -1661,8 +1683,10 @@ def test_debug_mode_reports_a_deep_overlap_inside_jit():
     run = jax.jit(lambda s: rb.rollout(loud, params, s, 500)[0])
     final = jax.block_until_ready(run(loud.prepare(scene.state(params, position=(0.0, 0.0, 0.5)))))
     assert float(final.position[0, 2]) > 0.1  # it bounced, and nothing was reported
+    with pytest.warns(UserWarning, match="inside 'ground'"):
+        deep = scene.state(params, position=(0.0, 0.0, -0.2))
     with pytest.raises(Exception, match="overlap deeper than max_penetration"):
-        jax.block_until_ready(run(loud.prepare(scene.state(params, position=(0.0, 0.0, -0.2)))))
+        jax.block_until_ready(run(loud.prepare(deep)))
 
 
 def test_a_coins_overlap_limit_is_half_its_thickness():
