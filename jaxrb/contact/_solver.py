@@ -839,11 +839,14 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         a_mat = jax.jacfwd(lambda x: sweep(x.reshape(lam.shape), bodies, f, target, mu).reshape(-1))(lam.reshape(-1))
         # Where A keeps a direction (|eigenvalue| near 1: the redundant normal impulses of
         # four corners on a face, their friction sliding different ways as the box spins),
-        # the frozen recursion does not forget the warm start's tangent along it, and drifts
-        # from the derivative of what the sweeps computed (5e-5 of it a step; a spinning,
-        # sliding box's mass derivative 1.6e-3 off differences after 200 steps). There, the
-        # sweeps' own derivative. The test: A^(2^m), 2^m >= iterations, by squaring, on the
-        # active slots (the sweeps leave the padding slot as it is: an identity block).
+        # the warm start's tangent along it never decays, and the sweeps apply their own
+        # iterates' Jacobians to it, not the solution's: the frozen recursion drifts from
+        # the derivative of what the sweeps computed (5e-5 of it a step; a spinning, sliding
+        # box's mass derivative 1.6e-3 off differences after 200 steps). It is not the
+        # tangent sweep's b piling up along the mode: P b was 1e-13 (benchmarks/README.md,
+        # "The frozen derivative on a face"). There, the sweeps' own derivative. The test:
+        # A^(2^m), 2^m >= iterations, by squaring, on the active slots (the sweeps leave the
+        # padding slot as it is: an identity block).
         kept = jnp.repeat(active, 3).astype(a_mat.dtype)
         power = a_mat * kept[:, None] * kept[None, :]
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
