@@ -180,14 +180,7 @@ def _central(scene: Scene, g: _Group) -> bool:
 
 
 def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:
-    """:attr:`Layout.pair_colours`: the pairs coloured greedily, padded.
-
-    In pair order first, then in random permutations (fixed seed) until one needs no more
-    colours than the most pairs on one body, or the tries run out; the fewest colours win.
-    The impact pass visits the pair colours, and each solve colours its active pairs again
-    within them (:mod:`._recolour`), so that a sweep holds at most ``K`` times their number
-    of visits. Greedy in pair order gave the 5-box stack with all pairs (each box in 5
-    pairs) 7 colours, one of the random orders 5."""
+    """:attr:`Layout.pair_colours`: the pairs coloured greedily (in pair order), padded."""
     slots: dict[int, list[int]] = {}
     for slot, p in enumerate(pair):
         slots.setdefault(p, []).append(slot)
@@ -195,21 +188,8 @@ def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:
         return ()
     pairs = sorted(slots)
     first = [slots[p][0] for p in pairs]
-    pa, pb = [body_a[s] for s in first], [body_b[s] for s in first]
-    degree: dict[int, int] = {}
-    for a, b in zip(pa, pb, strict=True):
-        for x in (a, b):
-            if x < num_bodies:
-                degree[x] = degree.get(x, 0) + 1
-    bound = max(degree.values(), default=1)
-    colours = _greedy_colouring(pa, pb, num_bodies, range(len(pairs)))
-    rng = random.Random(0)
-    for _ in range(min(_COLOURING_TRIES, _COLOURING_WORK // len(pairs))):
-        if len(colours) <= bound:
-            break
-        candidate = _greedy_colouring(pa, pb, num_bodies, rng.sample(range(len(pairs)), len(pairs)))
-        if len(candidate) < len(colours):
-            colours = candidate
+    colours = _greedy_colouring([body_a[s] for s in first], [body_b[s] for s in first], num_bodies,
+                                range(len(pairs)))
     width = max(len(c) for c in colours)
     depth = max(len(v) for v in slots.values())
     pad = len(pair)

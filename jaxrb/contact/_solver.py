@@ -360,13 +360,8 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
     reverse mode keeps each sweep's input only (``branch``'s ``recompute_in_reverse``),
     not the residuals of the sweep (zero-filled for a skipped one). ``idle`` (bool scalar,
     with a ``tolerance``): nothing to do, every sweep skipped.
-    ``colours`` is a ``(K, W)`` table of slot indices, or ``(table, visits)``: a solve's own
-    colours (:func:`._recolour.active_colours`), of which a sweep that ends at its
-    tolerance with ``early_exit`` visits the first ``visits`` only (the later rows are
-    padding; the sweeps that are differentiated visit them all, to no effect).
     Returns the bodies, ``per_slot`` and the number of sweeps run (int32).
     """
-    colours, visits = colours if isinstance(colours, tuple) else (colours, None)
     idx = jnp.asarray(colours)
     c = _by_colour(bodies, f, colours)
     data = jax.tree.map(lambda x: x[idx], slot_data)
@@ -392,13 +387,9 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
         written = jnp.concatenate([end.reshape(2 * width, 6), jnp.pad(mine, ((0, 0), (0, 3)))])
         return state.at[rows_k].set(written), None
 
-    def run(twist, values, c, data, first=None):
+    def run(twist, values, c, data):
         state = jnp.concatenate([twist, jnp.pad(values.reshape(-1, 3), ((0, 0), (0, 3)))])
-        if first is None:
-            state, _ = jax.lax.scan(colour_step, state, (c, data, rows))
-        else:  # the first colours only (a while loop: not differentiated)
-            state = jax.lax.fori_loop(
-                0, first, lambda k, x: colour_step(x, jax.tree.map(lambda y: y[k], (c, data, rows)))[0], state)
+        state, _ = jax.lax.scan(colour_step, state, (c, data, rows))
         return state[:n_rows], state[n_rows:, :3].reshape(values.shape)
 
     def converged(new, values):
@@ -415,7 +406,7 @@ def _colour_sweeps(bodies: Bodies, f: Frames, colours, slot_data, per_slot, upda
 
     def next_sweep(carry):
         twist, values, count, _ = carry
-        twist, new = run(twist, values, c, data, visits)
+        twist, new = run(twist, values, c, data)
         return twist, new, count + 1, converged(new, values)
 
     twist = jnp.concatenate([bodies.velocity, bodies.angular_velocity], -1)

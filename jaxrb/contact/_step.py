@@ -69,7 +69,6 @@ from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
 from ._layout import Layout, bodies_with_slots, build_layout, detect, pair_separations, slot_values, with_pair_slots
 from ._lcp import solve_exact
-from ._recolour import solve_colours
 from ._settings import ContactSettings
 from ._solver import (
     SAVE_NAMED,
@@ -159,10 +158,11 @@ def _slot_coefficients(ctx: _Ctx, params: Params):
 
 
 def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu, active, lam0):
+    colours = literal_array(layout.colours)
     if settings.solver == "exact":
-        return solve_exact(bodies, f, literal_array(layout.colours), target, mu, active, lam0,
+        return solve_exact(bodies, f, colours, target, mu, active, lam0,
                            settings.iterations, settings.newton_iterations)
-    return solve(bodies, f, solve_colours(layout, active), target, mu, active, lam0, settings.iterations,
+    return solve(bodies, f, colours, target, mu, active, lam0, settings.iterations,
                  tolerance=settings.tolerance_for(target.dtype))
 
 
