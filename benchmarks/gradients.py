@@ -6,10 +6,15 @@ What it measures
       the sum of the heights over the trajectory. Times: the jitted forward rollout, the
       reverse-mode gradient with respect to everything in ``Params`` and the initial
       ``State`` (``jax.grad``), and the forward-mode Jacobian with respect to
-      ``(e, mu, mass)`` (``jax.jacfwd``), with their compile times. The three are timed in
-      turn over 40 interleaved rounds after a warm-up; the ratio of the minima (and, beside
-      it, of the medians) gradient / forward is the figure of merit.
-    * ``bounce`` also splits that cost, in rounds of its own: the same two compiled
+      ``(e, mu, mass)`` (``jax.jacfwd``), with their compile times. Each program is timed
+      hot, as a user's loop calls it and as ``peers.py`` times the peers (best of
+      consecutive calls): in blocks of 10 consecutive calls, the programs' blocks taken in
+      turn, 40 calls each after a warm-up. The ratio of the minima (and, beside it, of the
+      medians) gradient / forward is the figure of merit. The same calls interleaved one
+      by one (forward, reverse, Jacobian, forward, ...), this script's protocol until
+      2026-12-04, are recorded beside it (``interleaved``): there each call follows another
+      program's, and the forward, a small program, runs up to 1.5x slower cold.
+    * ``bounce`` also splits that cost, in blocks of its own: the same two compiled
       programs from a start high enough that no step of the rollout comes near the ground
       (every step is free flight), and the same ball in a scene that declares no contacts
       (its step is the bare integrator step) from that start, with the loss as it is (XLA
@@ -82,23 +87,31 @@ def memory_bytes(exe) -> int | None:
 
 #: The ball's programs take milliseconds, and one process's calls of the same program vary
 #: by up to 2x on the 2-core machine (bursts of slow calls), so a best of three sequential
-#: calls made the committed ratio swing between 4x and 7x from run to run. They are timed
-#: in this many interleaved rounds instead (forward, reverse, Jacobian, forward, ...).
+#: calls made the committed ratio swing between 4x and 7x from run to run. So each program
+#: is called this many times, in blocks taken in turn: a slow spell of the machine falls
+#: on all the programs alike.
 BOUNCE_ROUNDS = 40
+#: Consecutive calls of one program in a block. A call right after another program's runs
+#: cold: the 1000-step ball's forward took 0.55-0.61 ms by minima interleaved call by call
+#: with its gradient, and 0.38-0.40 ms in blocks of 10 or called alone; its gradient
+#: 2.3-3.0 ms either way (2026-12-04, Intel Xeon, benchmarks/README.md, "How the ratio is
+#: timed"). The peers are timed hot (``peers.py``: best of consecutive calls).
+HOT_BLOCK = 10
 
 
-def interleaved(programs: dict, rounds: int) -> dict[str, np.ndarray]:
-    """Wall times (s) of ``rounds`` calls of each ``name: (fn, args)``, taken in turn, one
-    round after another, after one warm-up call each: a slow spell of the machine then
-    falls on all of them alike, and the ratios of minima or medians compare like with like."""
+def interleaved(programs: dict, rounds: int, block: int = 1) -> dict[str, np.ndarray]:
+    """Wall times (s) of ``rounds`` calls of each ``name: (fn, args)``, after one warm-up
+    call each: ``block`` consecutive calls of one program, then of the next, in turn, until
+    each has had ``rounds``. With ``block = 1`` every call follows another program's."""
     for fn, args in programs.values():
         jax.block_until_ready(fn(*args))
     times = {name: [] for name in programs}
-    for _ in range(rounds):
+    for _ in range(max(1, rounds // block)):
         for name, (fn, args) in programs.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*args))
-            times[name].append(time.perf_counter() - t0)
+            for _ in range(block):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(*args))
+                times[name].append(time.perf_counter() - t0)
     return {name: np.asarray(t) for name, t in times.items()}
 
 
@@ -157,11 +170,13 @@ def bounce(steps, repeats, dtype):
         for f in ("position", "velocity", "orientation", "angular_momentum"))
 
     rounds = max(repeats, BOUNCE_ROUNDS)
-    progress(f"timing the bouncing ball: {rounds} interleaved rounds, then the split")
-    times = interleaved({"forward": (forward, (params, state)), "reverse": (reverse, (params, state)),
-                         "jacfwd": (jacfwd, (x,))}, rounds)
-    # The split in rounds of its own (the headline ratio's rounds stay as they were),
-    # with the bouncing start again beside the others.
+    block = min(HOT_BLOCK, rounds)
+    progress(f"timing the bouncing ball: {rounds} calls each in blocks of {block}, then one by one, then the split")
+    headline = {"forward": (forward, (params, state)), "reverse": (reverse, (params, state)), "jacfwd": (jacfwd, (x,))}
+    times = interleaved(headline, rounds, block)
+    one_by_one = interleaved(headline, rounds)
+    # The split in blocks of its own (the headline ratio's stay as they were), with the
+    # bouncing start again beside the others.
     split_times = interleaved({"forward_bounce": (forward, (params, state)),
                                "reverse_bounce": (reverse, (params, state)),
                                "forward_flight": (forward, (params, high)), "reverse_flight": (reverse, (params, high)),
@@ -169,8 +184,9 @@ def bounce(steps, repeats, dtype):
                                "reverse_no_contacts": (bare_reverse, (bare_params, bare_state)),
                                "forward_no_contacts_attitude_kept": (kept_forward, (bare_params, bare_state)),
                                "reverse_no_contacts_attitude_kept": (kept_reverse, (bare_params, bare_state))},
-                              rounds)
+                              rounds, block)
     t_fwd, t_rev, t_jf = (float(np.min(times[k])) for k in ("forward", "reverse", "jacfwd"))
+    lone_fwd, lone_rev = (float(np.min(one_by_one[k])) for k in ("forward", "reverse"))
     median = {k: float(np.median(v)) for k, v in times.items()}
     grads = reverse(params, state)
     finite = all(bool(np.all(np.isfinite(np.asarray(g)))) for g in jax.tree.leaves(grads))
@@ -181,6 +197,11 @@ def bounce(steps, repeats, dtype):
         "ratio_reverse_over_forward": t_rev / t_fwd, "ratio_jacfwd3_over_forward": t_jf / t_fwd,
         "timing_rounds": rounds, "median_forward_s": median["forward"], "median_reverse_grad_s": median["reverse"],
         "median_ratio_reverse_over_forward": median["reverse"] / median["forward"],
+        "timing_block": block,
+        "interleaved": {"forward_s": lone_fwd, "reverse_grad_s": lone_rev,
+                        "ratio_reverse_over_forward": lone_rev / lone_fwd,
+                        "median_ratio_reverse_over_forward": float(np.median(one_by_one["reverse"])
+                                                                   / np.median(one_by_one["forward"]))},
         "compile_forward_s": c_fwd, "compile_reverse_s": c_rev, "compile_jacfwd_s": c_jf,
         "reverse_memory_bytes": memory_bytes(reverse), "forward_memory_bytes": memory_bytes(forward),
         "gradient_finite": finite,
@@ -245,10 +266,15 @@ def print_table(record):
           f"{b['median_forward_s'] * 1e3:.1f} / {b['median_reverse_grad_s'] * 1e3:.1f} ms, "
           f"x{b['median_ratio_reverse_over_forward']:.2f}), forward Jacobian (3 params) "
           f"{b['forward_jacobian_3_params_s'] * 1e3:.1f} ms (x{b['ratio_jacfwd3_over_forward']:.2f}); compile "
-          f"{b['compile_forward_s']:.1f} / {b['compile_reverse_s']:.1f} / {b['compile_jacfwd_s']:.1f} s")
+          f"{b['compile_forward_s']:.1f} / {b['compile_reverse_s']:.1f} / {b['compile_jacfwd_s']:.1f} s; "
+          f"each timed hot, in blocks of {b['timing_block']} calls")
+    i = b["interleaved"]
+    print(f"  the same calls one by one, each after another program's: forward {i['forward_s'] * 1e3:.2f} ms, "
+          f"gradient {i['reverse_grad_s'] * 1e3:.2f} ms (x{i['ratio_reverse_over_forward']:.2f}; medians "
+          f"x{i['median_ratio_reverse_over_forward']:.2f})")
     c = b.get("cost_split_s")
     if c:
-        print(f"  split (rounds of its own): bouncing as above: forward {c['forward_bounce'] * 1e3:.2f} ms, "
+        print(f"  split (blocks of its own): bouncing as above: forward {c['forward_bounce'] * 1e3:.2f} ms, "
               f"gradient {c['reverse_bounce'] * 1e3:.2f} ms (x{c['reverse_bounce'] / c['forward_bounce']:.2f})")
         print(f"  the same programs, flight only (no step near the ground): forward "
               f"{c['forward_flight'] * 1e3:.2f} ms, gradient {c['reverse_flight'] * 1e3:.2f} ms "

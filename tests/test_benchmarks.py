@@ -114,6 +114,8 @@ def test_contacts_benchmark_quick(tmp_path):
 def test_gradients_benchmark_quick(tmp_path):
     record = load("gradients").main(["--quick", "--no-plain", "--out", str(tmp_path)])
     assert record["bounce"]["gradient_finite"] and record["bounce"]["ratio_reverse_over_forward"] > 0
+    # Timed hot, in blocks of consecutive calls, and one by one beside it.
+    assert record["bounce"]["timing_block"] == 10 and record["bounce"]["interleaved"]["ratio_reverse_over_forward"] > 0
     # The cost split: flight only, the contact program's free steps and the bare integrator
     # step are the same arithmetic, so their gradients with respect to the state agree.
     split = record["bounce"]["cost_split_s"]
