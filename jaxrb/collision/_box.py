@@ -40,7 +40,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
-from .._indexing import literal_array
 from ..shapes import Box
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
@@ -266,7 +265,7 @@ def box_box_separation(
     """
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     pa, qa, pb, qb = geo.as_float(dtype, position_a, orientation_a, position_b, orientation_b)
-    ea, eb = literal_array(box_a.half_extents, dtype), literal_array(box_b.half_extents, dtype)
+    ea, eb = geo.size_vector(box_a.half_extents, dtype), geo.size_vector(box_b.half_extents, dtype)
     face_sep, _, edge_sep, _, edge_ok = _axis_separations(pa, geo.body_axes(qa), ea, pb, geo.body_axes(qb), eb)
     return jnp.maximum(jnp.max(face_sep), jnp.max(jnp.where(edge_ok, edge_sep, -jnp.inf)))
 
@@ -294,8 +293,8 @@ def box_box(
     geo.check_margin(margin)
     dtype = geo.float_dtype(position_a, orientation_a, position_b, orientation_b)
     pa, qa, pb, qb = geo.as_float(dtype, position_a, orientation_a, position_b, orientation_b)
-    ea = literal_array(box_a.half_extents, dtype)
-    eb = literal_array(box_b.half_extents, dtype)
+    ea = geo.size_vector(box_a.half_extents, dtype)
+    eb = geo.size_vector(box_b.half_extents, dtype)
     axes_a = geo.body_axes(qa)
     axes_b = geo.body_axes(qb)
     delta = pa - pb
@@ -320,7 +319,7 @@ def box_box(
     # The edge contact is used when its axis wins by more than round-off and the preference
     # for faces, and as a fallback should clipping leave no point within the margin (never
     # seen in tests; cheap insurance against a near-tie between a face and an edge axis).
-    prefer_faces = EDGE_PREFERENCE * min(*box_a.half_extents, *box_b.half_extents)
+    prefer_faces = EDGE_PREFERENCE * geo.smallest(*box_a.half_extents, *box_b.half_extents)
     use_edge = (best_edge > best_face + tie + prefer_faces) | ~face_found[0]
     # 3. Edge-edge contact (slot 0 only).
     normal_edge = edge_normals[k_edge]

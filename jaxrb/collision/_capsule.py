@@ -48,7 +48,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import spatial
-from .._indexing import literal_array
 from ..shapes import Box, Capsule, Cylinder
 from . import _geometry as geo
 from ._contact import Contact, contact_from_surface_point
@@ -140,7 +139,7 @@ def capsule_capsule(
     surface_a, normal, gap = rounded_points_contact(
         core_a, capsule_a.radius, core_b, capsule_b.radius, jnp.broadcast_to(perpendicular, (2, 3))
     )
-    distinct = jnp.abs(s1 - s0) > _DISTINCT_FRACTION * min(capsule_a.radius, capsule_b.radius)
+    distinct = jnp.abs(s1 - s0) > _DISTINCT_FRACTION * geo.smallest(capsule_a.radius, capsule_b.radius)
     valid = jnp.stack([jnp.ones((), bool), distinct])
     return contact_from_surface_point(surface_a, normal, gap, margin, valid=valid)
 
@@ -170,7 +169,7 @@ def capsule_box(
     )
     axis = geo.body_axes(orientation_a)[2]
     axes_b = geo.body_axes(orientation_b)
-    half_box = literal_array(box.half_extents, dtype)
+    half_box = geo.size_vector(box.half_extents, dtype)
     half = capsule.half_length
 
     def ball(s):
@@ -226,7 +225,7 @@ def capsule_box_separation(
     half_box = box.half_extents
     return _gap_at_closest_point(capsule, position_a, orientation_a, position_b, orientation_b,
                                  lambda c, p, axes: ball_box_contact(c, capsule.radius, p, axes,
-                                                                     literal_array(half_box, c.dtype))[2])
+                                                                     geo.size_vector(half_box, c.dtype))[2])
 
 
 def capsule_cylinder(

@@ -122,13 +122,13 @@ def cylinder_box(
     axes_a = geo.body_axes(qa)
     x_axis, y_axis, axis = axes_a
     axes_b = geo.body_axes(qb)
-    half_box = literal_array(box.half_extents, dtype)
+    half_box = geo.size_vector(box.half_extents, dtype)
     radius, half = cylinder.radius, cylinder.half_length
 
     scale = spatial.safe_norm(pa - pb) + radius + half + jnp.sum(half_box)
     # A point is held against a reference face only this far into it: deeper, another face
     # may be nearer by much, and its own nearest face gives the shorter way out.
-    shallow = 0.1 * min(radius, half, *box.half_extents)
+    shallow = 0.1 * geo.smallest(radius, half, *box.half_extents)
     round_off = 64 * jnp.finfo(dtype).eps * scale
 
     def signed_distance(x):  # of a point to the cylinder (m): convex along any line
@@ -204,7 +204,7 @@ def cylinder_box(
     gap = jnp.concatenate([gap_b, gap_c])
     valid = jnp.concatenate([jnp.ones(20, bool), jnp.tile(square_valid, 2), jnp.repeat(over_face, 2)])
 
-    chosen, found = _spread_slots(surface, gap, valid, margin, 1e-3 * min(radius, half, *box.half_extents))
+    chosen, found = _spread_slots(surface, gap, valid, margin, 1e-3 * geo.smallest(radius, half, *box.half_extents))
     surface, normal, gap = surface[chosen], normal[chosen], gap[chosen]
 
     # Overlapping: slot 0 is the best of these separating directions, a push that frees the
@@ -366,7 +366,7 @@ def cylinder_cylinder(
     sizes = (cylinder_a.radius, cylinder_a.half_length, cylinder_b.radius, cylinder_b.half_length)
     scale = spatial.safe_norm(pa - pb) + sum(sizes)
     round_off = 64 * jnp.finfo(dtype).eps * scale
-    shallow = 0.1 * min(sizes)
+    shallow = 0.1 * geo.smallest(*sizes)
     a = (pa, axes_a, cylinder_a.radius, cylinder_a.half_length)
     b = (pb, axes_b, cylinder_b.radius, cylinder_b.half_length)
 
@@ -386,7 +386,8 @@ def cylinder_cylinder(
     surface = jnp.concatenate([surface_a, surface_b])
     normal = jnp.concatenate([normal_a, normal_b])
     gap = jnp.concatenate([gap_a, gap_b])
-    chosen, found = _spread_slots(surface, gap, jnp.concatenate([valid_a, valid_b]), margin, 1e-3 * min(sizes))
+    valid = jnp.concatenate([valid_a, valid_b])
+    chosen, found = _spread_slots(surface, gap, valid, margin, 1e-3 * geo.smallest(*sizes))
 
     # From each rim's searched point (rows 8, 9) to the other's nearest rim point (two rims
     # that touch), and perpendicular to both rims there (two rims that cross).

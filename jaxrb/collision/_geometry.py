@@ -60,6 +60,24 @@ def float_dtype(*arrays: Array):
     return jnp.result_type(*arrays, float)
 
 
+def size_vector(values, dtype) -> Array:
+    """A shape's sizes (a box's half extents, a plane's normal) as an array ``(n,)``:
+    literals when they are static floats (see :func:`jaxrb._indexing.literal_array`), and
+    the traced values as they are when differently sized shapes of one type share one
+    vmapped narrow phase (:func:`jaxrb.contact._layout.build_layout`)."""
+    if any(isinstance(v, jax.core.Tracer) for v in values):
+        return jnp.stack([jnp.asarray(v, dtype) for v in values])
+    return literal_array(values, dtype)
+
+
+def smallest(*sizes):
+    """The smallest of a shape pair's sizes: Python's ``min`` for static floats (a
+    constant of the program), ``jnp.min`` for traced ones (see :func:`size_vector`)."""
+    if any(isinstance(v, jax.core.Tracer) for v in sizes):
+        return jnp.min(jnp.stack([jnp.asarray(v) for v in sizes]))
+    return min(sizes)
+
+
 def as_float(dtype, *arrays: ArrayLike) -> tuple[Array, ...]:
     return tuple(jnp.asarray(a, dtype=dtype) for a in arrays)
 

@@ -23,7 +23,7 @@ __all__ = ["sphere_plane", "box_plane", "capsule_plane", "cylinder_plane"]
 
 
 def _plane_normal(plane: Plane, dtype) -> Array:
-    return literal_array(plane.normal, dtype)
+    return geo.size_vector(plane.normal, dtype)
 
 
 def sphere_plane(
@@ -73,7 +73,7 @@ def box_plane(
     dtype = geo.float_dtype(position, orientation)
     position, orientation = geo.as_float(dtype, position, orientation)
     n = _plane_normal(plane, dtype)
-    corners = geo.box_corners(position, geo.body_axes(orientation), literal_array(box.half_extents, dtype))
+    corners = geo.box_corners(position, geo.body_axes(orientation), geo.size_vector(box.half_extents, dtype))
     height = spatial.dot(corners, n[None, :]) - plane.offset  # (8,)
     deepest = _four_deepest(height)
     return contact_from_surface_point(corners[deepest], jnp.broadcast_to(n, (4, 3)), height[deepest], margin)

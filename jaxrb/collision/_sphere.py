@@ -104,7 +104,7 @@ def sphere_box(
     position_a, position_b, orientation_b = geo.as_float(dtype, position_a, position_b, orientation_b)
     axes = geo.body_axes(orientation_b)  # rows: box axes, world frame
     surface_a, normal, gap, _ = ball_box_contact(position_a, sphere.radius, position_b, axes,
-                                                 literal_array(box.half_extents, dtype))
+                                                 geo.size_vector(box.half_extents, dtype))
     return contact_from_surface_point(surface_a[None], normal[None], gap[None], margin)
 
 

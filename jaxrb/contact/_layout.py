@@ -1,10 +1,11 @@
 """A scene's contact slots: which bodies each slot joins, and their detection at one pose.
 
 Everything here that decides *structure* runs once, in Python, when a step is built: the
-scene's contact pairs are grouped by their (shape, shape) type so that each group is one
+scene's contact pairs are grouped by their (shape type, shape type) so that each group is one
 ``jax.vmap`` of one narrow-phase function (a scene compiles only the pair functions it
-declares), and the slots are coloured so that no two slots of one colour move the same
-body. The solvers then update a whole colour at once and still do Gauss-Seidel.
+declares, each once however many sizes of its shapes the scene holds), and the slots are
+coloured so that no two slots of one colour move the same body. The solvers then update a
+whole colour at once and still do Gauss-Seidel.
 
 Body indices: ``0 .. N-1`` are the scene's bodies, ``N`` is the static ground (zero inverse
 mass), ``N + 1`` is a padding body for the unused places of a colour (also static).
@@ -34,14 +35,29 @@ __all__ = ["Layout", "bodies_with_slots", "build_layout", "detect", "pair_separa
 
 @dataclasses.dataclass(frozen=True)
 class _Group:
-    """Pairs sharing one (shape A, shape B): one vmapped narrow-phase call."""
+    """Pairs sharing one (shape type A, shape type B): one vmapped narrow-phase call.
 
-    shape_a: object
-    shape_b: object
+    ``shapes_a``, ``shapes_b``: each pair's shapes (a plane for the ground or a wall).
+    Where a side's shapes differ in size, the narrow phase reads that side's sizes as
+    traced values, one row per pair (:func:`_vmapped`), so the pair function is traced
+    once, not once per size: a tower of five differently sized cans traced the
+    cylinder-cylinder narrow phase three times, and its step compiled in 62 s."""
+
+    shapes_a: tuple
+    shapes_b: tuple
     body_a: tuple[int, ...]
     body_b: tuple[int, ...]  # N for the ground
     pair_index: tuple[int, ...]
     slots: int  # K per pair
+
+    @property
+    def shape_a(self):
+        """The group's first A shape: its type is every pair's A type."""
+        return self.shapes_a[0]
+
+    @property
+    def shape_b(self):
+        return self.shapes_b[0]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,21 +162,22 @@ def _colour(body_a, body_b, pair, num_bodies) -> list[list[int]]:
 def build_layout(scene: Scene) -> Layout:
     """Group and colour ``scene.contact_pairs`` (static; called when a step is built)."""
     n = scene.num_bodies
-    keyed: dict[tuple, list[tuple[int, int, int]]] = {}
+    keyed: dict[tuple, list[tuple[int, int, int, object, object]]] = {}
     for p, (a, b) in enumerate(scene.contact_pairs):
         ia = scene.index(a)
         ib = n if scene.is_plane(b) else scene.index(b)  # every static plane is the static "body" n
+        shape_a = scene.bodies[ia].shape
         shape_b = scene.planes[b] if scene.is_plane(b) else scene.bodies[ib].shape
-        keyed.setdefault((scene.bodies[ia].shape, shape_b), []).append((ia, ib, p))
+        keyed.setdefault((type(shape_a), type(shape_b)), []).append((ia, ib, p, shape_a, shape_b))
     groups = []
     body_a: list[int] = []
     body_b: list[int] = []
     pair: list[int] = []
-    for (shape_a, shape_b), members in keyed.items():
-        k = max_contacts(shape_a, shape_b)
-        ia, ib, ip = (tuple(x) for x in zip(*members, strict=True))
-        groups.append(_Group(shape_a, shape_b, ia, ib, ip, k))
-        for a, b, p in members:
+    for (type_a, type_b), members in keyed.items():
+        k = max_contacts(type_a, type_b)
+        ia, ib, ip, sa, sb = (tuple(x) for x in zip(*members, strict=True))
+        groups.append(_Group(sa, sb, ia, ib, ip, k))
+        for a, b, p, _, _ in members:
             body_a += [a] * k
             body_b += [b] * k
             pair += [p] * k
@@ -173,7 +190,7 @@ def build_layout(scene: Scene) -> Layout:
 
 def _central(scene: Scene, g: _Group) -> bool:
     """Whether each contact of the group lies on the line through both centres of mass."""
-    def centred_sphere(shape, bodies):
+    def centred_sphere(shape, bodies):  # (the group's shapes all have the first one's type)
         return isinstance(shape, Sphere) and not any(any(scene.bodies[i].shape_offset) for i in bodies)
     return centred_sphere(g.shape_a, g.body_a) and (
         all(i == scene.num_bodies for i in g.body_b) or centred_sphere(g.shape_b, g.body_b))
@@ -269,9 +286,47 @@ def _group_poses(layout: Layout, g: _Group, positions, orientations):
 
 def _group_contacts(g: _Group, pa, qa, pb, qb, margin: float) -> Contact:
     """The group's narrow phase, vmapped over its pairs: fields ``(G, K, ...)``."""
-    if pb is None:
-        return jax.vmap(lambda p, q: collide(g.shape_a, p, q, g.shape_b, None, None, margin))(pa, qa)
-    return jax.vmap(lambda *x: collide(g.shape_a, x[0], x[1], g.shape_b, x[2], x[3], margin))(pa, qa, pb, qb)
+    return _vmapped(g, lambda *x: collide(*x, margin), pa, qa, pb, qb)
+
+
+def _vmapped(g: _Group, function, pa, qa, pb, qb):
+    """``function(shape_a, pa, qa, shape_b, pb, qb)`` vmapped over the group's pairs (``pb``,
+    ``qb``: ``None`` for a plane, which has no pose).
+
+    A side whose pairs share one shape passes it as it is (its sizes are constants of the
+    program); a side whose shapes differ passes each pair's sizes as traced rows, and
+    ``function`` sees a shape of that type built from them (:func:`_sized_like`). The
+    pair functions read sizes through ``jnp`` (see
+    :func:`jaxrb.collision._geometry.size_vector`), so both give the same arithmetic."""
+    sizes_a, sizes_b = (_size_rows(shapes, pa.dtype) for shapes in (g.shapes_a, g.shapes_b))
+
+    def one(rows_a, rows_b, pa, qa, pb, qb):
+        shape_a = g.shape_a if rows_a is None else _sized_like(g.shape_a, rows_a)
+        shape_b = g.shape_b if rows_b is None else _sized_like(g.shape_b, rows_b)
+        return function(shape_a, pa, qa, shape_b, pb, qb)
+
+    return jax.vmap(one)(sizes_a, sizes_b, pa, qa, pb, qb)
+
+
+def _size_rows(shapes: tuple, dtype):
+    """``None`` where every shape is the same; otherwise each size field of the shapes'
+    (common) dataclass stacked, ``{name: (G,) or (G, n)}``, in the poses' ``dtype`` (a
+    float64 size would promote a float32 scene's gaps) and built from literals (no
+    captured array constant: see :func:`jaxrb._indexing.literal_array`)."""
+    if all(s == shapes[0] for s in shapes):
+        return None
+    return {f.name: literal_array([getattr(s, f.name) for s in shapes], dtype) for f in dataclasses.fields(shapes[0])}
+
+
+def _sized_like(shape, rows: dict):
+    """A shape of ``shape``'s type whose size fields are the (traced) ``rows`` of one pair
+    (a tuple field as a tuple of scalars, as the shapes store it). Built without the
+    constructor, whose checks need concrete numbers: the sizes are the scene's own, checked
+    when its shapes were made."""
+    sized = object.__new__(type(shape))
+    for name, value in rows.items():
+        object.__setattr__(sized, name, tuple(value[i] for i in range(value.shape[0])) if value.ndim else value)
+    return sized
 
 
 def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) -> jax.Array:
@@ -294,15 +349,18 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
     for g in layout.groups:
         pa, qa, pb, qb = _group_poses(layout, g, positions, orientations)
         if isinstance(g.shape_a, Box) and isinstance(g.shape_b, Box):
-            sep = jax.vmap(lambda *x, g=g: box_box_separation(g.shape_a, x[0], x[1], g.shape_b, x[2], x[3]))(
-                pa, qa, pb, qb)
+            sep = _vmapped(g, box_box_separation, pa, qa, pb, qb)
         elif {type(g.shape_a), type(g.shape_b)} in ({Capsule, Box}, {Capsule, Cylinder}):
             capsule_first = isinstance(g.shape_a, Capsule)
-            capsule, other = (g.shape_a, g.shape_b) if capsule_first else (g.shape_b, g.shape_a)
-            cap_poses, other_poses = ((pa, qa), (pb, qb)) if capsule_first else ((pb, qb), (pa, qa))
-            separation = capsule_box_separation if isinstance(other, Box) else capsule_cylinder_separation
-            sep = jax.vmap(lambda *x, c=capsule, o=other, f=separation: f(c, x[0], x[1], o, x[2], x[3]))(
-                *cap_poses, *other_poses)
+            separation = capsule_box_separation if Box in (type(g.shape_a), type(g.shape_b)) else (
+                capsule_cylinder_separation)
+            if capsule_first:
+                sep = _vmapped(g, separation, pa, qa, pb, qb)
+            else:
+                def capsule_second(box, pb_, qb_, capsule, pa_, qa_, f=separation):
+                    return f(capsule, pa_, qa_, box, pb_, qb_)
+
+                sep = _vmapped(g, capsule_second, pa, qa, pb, qb)
         else:
             contact = _group_contacts(g, pa, qa, pb, qb, margin)
             sep = jnp.min(jnp.where(contact.active, contact.gap, margin), axis=-1)
