@@ -214,6 +214,20 @@ def test_differently_sized_shapes_share_one_narrow_phase_with_the_same_contacts(
                                        rtol=2e-5, atol=2e-6, err_msg=label)
 
 
+def test_pairs_declared_in_either_order_share_one_group_in_their_functions_order():
+    """A lid (box) on a can (cylinder) on a table (box): the pairs (lid, can) and (can,
+    table) are one cylinder-box group, each held in the pair function's order (the can
+    first), so the normals of both point from the box to the can, whose slots they are
+    (test_cans_stand_and_roll_on_a_box runs such a scene); the ground stays every pair's B."""
+    bodies = [rb.Body("lid", shape=rb.Box((0.08, 0.08, 0.02)), mass=0.3),
+              rb.Body("can", shape=rb.Cylinder(0.05, 0.1), mass=0.5),
+              rb.Body("table", shape=rb.Box((0.3, 0.3, 0.05)), mass=5.0)]
+    scene = rb.Scene(bodies, ground=rb.Plane(), contacts=[("lid", "can"), ("can", "table"), ("table", "ground")])
+    layout = layout_of(scene)
+    groups = [(type(g.shape_a), type(g.shape_b), g.body_a, g.body_b, g.pair_index) for g in layout.groups]
+    assert groups == [(rb.Cylinder, rb.Box, (1, 1), (0, 2), (0, 1)), (rb.Box, rb.Plane, (2,), (3,), (2,))]
+
+
 def test_a_scene_traces_each_pair_function_once_however_many_sizes_it_holds(monkeypatch):
     """A tower of three differently sized cans on the ground and a can across a log: two
     groups (cylinder-plane, cylinder-cylinder), so detection traces the narrow phase twice,

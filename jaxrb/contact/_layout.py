@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import spatial
 from .._indexing import literal_array, take_rows
-from ..collision import Contact, collide, concatenate_contacts, max_contacts
+from ..collision import Contact, collide, concatenate_contacts, max_contacts, supported_pairs
 from ..collision._box import box_box_separation
 from ..collision._capsule import capsule_box_separation, capsule_cylinder_separation
 from ..scene import Scene
@@ -163,11 +163,18 @@ def build_layout(scene: Scene) -> Layout:
     """Group and colour ``scene.contact_pairs`` (static; called when a step is built)."""
     n = scene.num_bodies
     keyed: dict[tuple, list[tuple[int, int, int, object, object]]] = {}
+    registered = set(supported_pairs())
     for p, (a, b) in enumerate(scene.contact_pairs):
         ia = scene.index(a)
         ib = n if scene.is_plane(b) else scene.index(b)  # every static plane is the static "body" n
         shape_a = scene.bodies[ia].shape
         shape_b = scene.planes[b] if scene.is_plane(b) else scene.bodies[ib].shape
+        if (type(shape_a).__name__, type(shape_b).__name__) not in registered:
+            # Held in its pair function's order (a plane is always B already), so that
+            # box-cylinder and cylinder-box pairs are one group. The pair is the same:
+            # ``collide`` would run that order and flip the normals, which now point
+            # from the new B to the new A, the bodies whose slots they are.
+            ia, ib, shape_a, shape_b = ib, ia, shape_b, shape_a
         keyed.setdefault((type(shape_a), type(shape_b)), []).append((ia, ib, p, shape_a, shape_b))
     groups = []
     body_a: list[int] = []
@@ -350,17 +357,9 @@ def pair_separations(scene: Scene, layout: Layout, state: State, margin: float) 
         pa, qa, pb, qb = _group_poses(layout, g, positions, orientations)
         if isinstance(g.shape_a, Box) and isinstance(g.shape_b, Box):
             sep = _vmapped(g, box_box_separation, pa, qa, pb, qb)
-        elif {type(g.shape_a), type(g.shape_b)} in ({Capsule, Box}, {Capsule, Cylinder}):
-            capsule_first = isinstance(g.shape_a, Capsule)
-            separation = capsule_box_separation if Box in (type(g.shape_a), type(g.shape_b)) else (
-                capsule_cylinder_separation)
-            if capsule_first:
-                sep = _vmapped(g, separation, pa, qa, pb, qb)
-            else:
-                def capsule_second(box, pb_, qb_, capsule, pa_, qa_, f=separation):
-                    return f(capsule, pa_, qa_, box, pb_, qb_)
-
-                sep = _vmapped(g, capsule_second, pa, qa, pb, qb)
+        elif isinstance(g.shape_a, Capsule) and isinstance(g.shape_b, (Box, Cylinder)):  # (the pair functions' order)
+            separation = capsule_box_separation if isinstance(g.shape_b, Box) else capsule_cylinder_separation
+            sep = _vmapped(g, separation, pa, qa, pb, qb)
         else:
             contact = _group_contacts(g, pa, qa, pb, qb, margin)
             sep = jnp.min(jnp.where(contact.active, contact.gap, margin), axis=-1)
