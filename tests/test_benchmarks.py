@@ -63,6 +63,19 @@ def test_kernel_count_benchmark_quick(tmp_path):
     assert any(key.startswith("integrators/_splitting.py:_rotate_about_principal_axis:") for key in by_line)
 
 
+def test_step_pieces_benchmark_quick(tmp_path):
+    load("step_pieces").main(["--quick", "--out", str(tmp_path)])
+    results = json.loads((tmp_path / "step_pieces.json").read_text())["results"]
+    assert {"step", "detect", "separations", "free step", "detect + frames + 1 sweep"} <= set(results)
+    # The narrow phase is part of "detect + frames", which is part of the solves, and a
+    # second sweep adds kernels to the first.
+    kernels = {name: r["kernels"] for name, r in results.items()}
+    assert kernels["detect"] < kernels["detect + frames"] < kernels["detect + frames + 1 sweep"]
+    assert kernels["detect + frames + 1 sweep"] < kernels["detect + frames + 2 sweeps"]
+    assert all(r["us_best"] > 0 and r["us_median"] >= r["us_best"] for r in results.values())
+    assert (tmp_path / "step_pieces.png").stat().st_size > 0
+
+
 @pytest.mark.slow
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
