@@ -2,11 +2,11 @@
 
 Why
     Issue 4 asks the 5-box stack of ``benchmarks/contacts.py`` to run at 5x MJX's
-    single-environment speed. On the 2-core CI-class machines MJX runs it at 5,300-5,800
-    steps/s, so 5x is a step of 34-38 microseconds. This script measures what the step's
-    pieces cost on their own, each run as a loop of ``--steps`` iterations from the settled
-    stack (the loop feeds each iteration's output to the next, so XLA cannot hoist it):
-    which pieces alone already spend that budget.
+    single-environment speed. On the 2-core CI-class machines MJX ran it at 5,263-7,438
+    steps/s in this project's committed runs, so 5x is a step of 27-38 microseconds. This
+    script measures what the step's pieces cost on their own, each run as a loop of
+    ``--steps`` iterations from the settled stack (the loop feeds each iteration's output
+    to the next, so XLA cannot hoist it): which pieces alone already spend that budget.
 
 What it measures (float32, the stack of ``contacts.py`` with ``--boxes`` cubes)
     * ``step``: the whole contact step (``rb.make_step``, ``SymplecticSplitting``, h = 1 ms);
