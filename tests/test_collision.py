@@ -439,6 +439,37 @@ def test_gap_and_normal_match_the_support_function_reference(pair):
     assert np.all(np.where(c.active, c.gap, np.inf) >= sd[:, None] - 1e-12)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_equal_boxes_resting_flat_keep_their_four_corners_in_the_same_slots(dtype):
+    """A cube resting flat on an equal one, under tilts and shifts of round-off size (the
+    poses of a settled stack): every pose's manifold holds the four corners of the face,
+    each corner in the same slot in every pose. Clipping leaves points along the coincident
+    edges, as deep as the corners to round-off. Before 2026-12-04 one of them could be
+    taken as the deepest point instead of a corner (25 mm from it on a settled 5-box stack),
+    and the deepest-first order put the corners in other slots from one pose to the next,
+    where the solve's warm start then landed on the wrong corners."""
+    with jax.enable_x64(dtype == jnp.float64):
+        box = Box((0.1, 0.1, 0.1))
+        rng = np.random.default_rng(3)
+        tiny = 1e-6 if dtype == jnp.float32 else 1e-13
+        n = 64
+        axis = rng.normal(size=(n, 3))
+        half_angle = 0.5 * tiny * rng.uniform(-1.0, 1.0, size=(n, 1))
+        axis /= np.linalg.norm(axis, axis=1)[:, None]
+        quat = np.concatenate([np.cos(half_angle), np.sin(half_angle) * axis], 1)
+        top = np.array([0.0, 0.0, 0.2]) + tiny * 0.1 * rng.normal(size=(n, 3))
+        identity = np.array([1.0, 0.0, 0.0, 0.0])
+        contact = jax.jit(jax.vmap(lambda p, q: collision.collide(box, p, q, box, jnp.zeros(3, dtype),
+                                                                   jnp.asarray(identity, dtype), margin=0.01)))(
+            jnp.asarray(top, dtype), jnp.asarray(quat, dtype))
+        assert np.all(np.asarray(contact.active))
+        xy = np.asarray(contact.point, float)[..., :2]  # (n, 4, 2)
+        corners = np.sign(xy) * 0.1
+        np.testing.assert_allclose(xy, corners, atol=1e-5)  # a corner, not a point along an edge
+        assert len({tuple(map(tuple, c)) for c in corners}) == 1, "a corner moved to another slot"
+        assert len({tuple(c) for c in corners[0]}) == 4  # the four corners, each once
+
+
 def test_box_box_separation_has_the_signed_distance_roots():
     """The separating-axis value the time-of-impact search uses: the signed distance where
     boxes overlap, a positive lower bound of it where they are apart, zero at touching."""
