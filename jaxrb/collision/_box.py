@@ -110,6 +110,12 @@ def _pick(score: Array, available: Array) -> tuple[Array, Array]:
     return index, jnp.any(available)
 
 
+def _centre(points: Array, mask: Array) -> Array:
+    """The mean ``(3,)`` of the rows of ``points`` where ``mask`` holds (0 where none does)."""
+    weight = mask.astype(points.dtype)
+    return jnp.sum(weight[:, None] * points, axis=0) / jnp.maximum(jnp.sum(weight), 1.0)
+
+
 def _reduce_manifold(points: Array, gaps: Array, candidate: Array, normal: Array, tie: Array):
     """Choose at most 4 of the (up to 8) clipped points: deepest first, then a wide spread.
 
@@ -127,9 +133,8 @@ def _reduce_manifold(points: Array, gaps: Array, candidate: Array, normal: Array
     index = jnp.arange(points.shape[0])
     deepest = jnp.min(jnp.where(candidate, gaps, jnp.inf))
     level = candidate & (gaps <= deepest + tie)
-    weight = candidate.astype(points.dtype)
-    centre = jnp.sum(weight[:, None] * points, axis=0) / jnp.maximum(jnp.sum(weight), 1.0)
-    i0, ok0 = _pick(spatial.dot(points - centre[None, :], points - centre[None, :]), level)
+    from_centre = points - _centre(points, candidate)[None, :]
+    i0, ok0 = _pick(spatial.dot(from_centre, from_centre), level)
     available = candidate & (index != i0)
     first = points[i0]
     from_first = points - first[None, :]
@@ -385,9 +390,7 @@ def _pose_stable_order(points: Array, normal: Array, axes_a: Array, found: Array
     3-11 sweeps a step). The order is piecewise constant: no derivative."""
     m = jnp.argmax(jnp.abs(spatial.dot(axes_a, normal[None, :])))
     u, v = axes_a[(m + 1) % 3], axes_a[(m + 2) % 3]
-    weight = found.astype(points.dtype)
-    centre = jnp.sum(weight[:, None] * points, axis=0) / jnp.maximum(jnp.sum(weight), 1.0)
-    offset = jax.lax.stop_gradient(points - centre[None, :])
+    offset = jax.lax.stop_gradient(points - _centre(points, found)[None, :])
     angle = jnp.arctan2(spatial.dot(offset, v[None, :]), spatial.dot(offset, u[None, :]))
     key = jnp.where(found, angle, 4.0)  # above every angle: the empty slots last
     index = jnp.arange(points.shape[0])
