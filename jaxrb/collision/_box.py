@@ -383,11 +383,12 @@ def _pose_stable_order(points: Array, normal: Array, axes_a: Array, found: Array
     slots while the pose moves a little. (An order by angle has one cut, where a point lies
     straight behind the centre along A's ``-u``; a pose with a point there may still swap
     two slots.) With this order and :func:`_reduce_manifold`'s corners, the 5-box stack of
-    ``benchmarks/contacts.py`` (float32), started from 24 poses 2 um apart, kept every slot
-    on its corner (before: a slot moved by more than 1 mm in 195 of its first 400 steps)
-    and ran 1.1-1.3 PGS sweeps a step on average over its second second, against 3.1-3.9
-    (two samples of 8 and 16 starts; some starts settled into a slow rocking that needed
-    3-11 sweeps a step). The order is piecewise constant: no derivative."""
+    ``benchmarks/contacts.py`` (float32) kept every slot on its corner over its first 400
+    steps (before: a slot moved by more than 1 mm in 195 of them), and started from 24
+    poses 2 um apart it ran 1.1-1.3 PGS sweeps a step on average over its second second,
+    against 3.1-3.9 (two samples of 8 and 16 starts; some starts settled into a slow
+    rocking that needed 3-11 sweeps a step). The order is piecewise constant: no
+    derivative."""
     m = jnp.argmax(jnp.abs(spatial.dot(axes_a, normal[None, :])))
     u, v = axes_a[(m + 1) % 3], axes_a[(m + 2) % 3]
     offset = jax.lax.stop_gradient(points - _centre(points, found)[None, :])
