@@ -57,11 +57,12 @@ DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 HERE = Path(__file__).resolve().parent
 
 
-def box_stack(dtype):
+def box_stack(dtype, boxes: int = 5):
     box = rb.Box((0.1, 0.1, 0.1))
-    scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(5)], ground=rb.Plane(), contacts="all")
+    scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(boxes)], ground=rb.Plane(),
+                     contacts="all")
     params = scene.params(friction=0.5, dtype=dtype)
-    state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)])
+    state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(boxes)])
     return scene, params, state
 
 

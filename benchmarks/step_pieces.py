@@ -53,20 +53,11 @@ from jaxrb.contact._solver import frames, solve
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/ is not a package
 from _machine import record_header, write_results  # noqa: E402
+from contacts import box_stack  # noqa: E402
 from kernels import kernel_counts  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 DT = 1e-3
-
-
-def stack(boxes: int):
-    """``contacts.py``'s box stack with ``boxes`` cubes (half-extent 0.1 m, 1 kg, mu = 0.5), float32."""
-    box = rb.Box((0.1, 0.1, 0.1))
-    scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(boxes)], ground=rb.Plane(),
-                     contacts="all")
-    params = scene.params(friction=0.5, dtype=jnp.float32)
-    state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(boxes)])
-    return scene, params, state
 
 
 def pieces(scene, settings: rb.ContactSettings):
@@ -111,7 +102,7 @@ def pieces(scene, settings: rb.ContactSettings):
 
 
 def measure(boxes: int, settle: int, steps: int, repeats: int, skip=()) -> dict:
-    scene, params, state = stack(boxes)
+    scene, params, state = box_stack(jnp.float32, boxes)
     named, step = pieces(scene, rb.ContactSettings())
     named = {name: piece for name, piece in named.items() if name not in skip}
     state = step.prepare(state)
