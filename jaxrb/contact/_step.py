@@ -5,8 +5,9 @@ One step of length ``h`` from state ``s`` (all bodies at once):
 1. **Kick.** ``v <- v + h/2 F/M``, ``L <- L + h/2 tau`` (forces at the start).
 2. **Solve.** Contacts are detected at the start pose (slots closer than ``margin``).
    Projected Gauss-Seidel finds impulses so that every active slot's normal velocity
-   ``u_n`` after them is at least its target: ``-gap/h`` ahead of contact (speculative:
-   it may close the gap but not pass it) and ``0`` in contact; friction inside Coulomb's
+   ``u_n`` after them is at least its target: ``-(gap - skin)/h`` ahead of contact
+   (speculative: it may close the gap but not pass it; ``skin`` absorbs the poses'
+   rounding, ``ContactSettings.skin``) and ``0`` in contact; friction inside Coulomb's
    cone. Before it, impacts faster than the restitution threshold get Newton's law,
    ``u_n^+ = -e u_n^-`` (``_solver.collisions``: pair after pair, all slots of a pair at
    once), after a plastic pass over the other touching pairs that approach: a body resting
@@ -272,8 +273,10 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
                                   state.angular_momentum) + kick_l
     bodies, _ = _solver_bodies(params, state, velocity, momentum)
     unsolved_omega = bodies.angular_velocity
-    # Then resting contact: u_n >= 0 in contact, u_n >= -gap/h ahead of it (speculative).
-    target = jnp.where(gap > 0, -gap / h, 0.0)
+    # Then resting contact: u_n >= 0 in contact, u_n >= -(gap - skin)/h ahead of it
+    # (speculative). Within the skin, a slot is held: a resting slot's gap then moves its
+    # target by nothing, not by its rounding over h (ContactSettings.skin).
+    target = -jnp.maximum(gap - settings.skin_for(gap.dtype), 0.0) / h
     lam0 = lam0 if settings.warm_start else jnp.zeros_like(lam0)
     solved, lam = _run_solver(settings, layout, bodies, f, target, mu, contact.active, lam0)
     velocity = solved.velocity[: scene.num_bodies]
