@@ -797,7 +797,6 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
     the derivative program holds neither the frozen branch nor the convergence test.
     """
     bodies, f, colours, target, mu, active, _ = primals
-    d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = tangents
     # Named, so that a rematerialising step (``_step._rematerialised``) keeps the solution
     # instead of running the sweeps again in reverse mode. Packed into one (B + B + C + 2, 3)
     # array (the last row holds the sweep count): a rollout stacks each saved array every
@@ -822,7 +821,8 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         start = apply_impulses(bodies, f, lam_in)
         return sweeps(start, f, colours, target, mu, active, lam_in, 1, normal_only)[1]
 
-    def frozen_recursion(a_mat):
+    def frozen_recursion(a_mat, t):
+        d_bodies, d_f, _, d_target, d_mu, _, d_lam0 = t
         _, b_vec = jax.jvp(lambda *theta: sweep(lam, *theta), (bodies, f, target, mu),
                            (d_bodies, d_f, d_target, d_mu))
         d_lam, b_vec = d_lam0.reshape(-1), b_vec.reshape(-1)
@@ -832,10 +832,12 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         _, d_end = jax.jvp(apply_impulses, (bodies, f, lam), (d_bodies, d_f, d_lam))
         return d_end.velocity, d_end.angular_velocity, d_lam
 
-    def unrolled(_):
-        return jax.jvp(lambda *p: _pgs_sweeps(iterations, normal_only, tolerance, False, *p)[:3], primals, tangents)[1]
+    # The branches take the tangents as an operand, not from this scope: in an ensemble's
+    # derivative each then sees those of the members that take it (``member_switch``).
+    def unrolled(t):
+        return jax.jvp(lambda *p: _pgs_sweeps(iterations, normal_only, tolerance, False, *p)[:3], primals, t)[1]
 
-    def frozen(_):
+    def frozen(t):
         a_mat = jax.jacfwd(lambda x: sweep(x.reshape(lam.shape), bodies, f, target, mu).reshape(-1))(lam.reshape(-1))
         # Where A keeps a direction (|eigenvalue| near 1: the redundant normal impulses of
         # four corners on a face, their friction sliding different ways as the box spins),
@@ -852,17 +854,17 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
             power = power @ power
         forgets = jnp.max(jnp.abs(power)) <= FORGOTTEN
-        return member_cond(forgets, frozen_recursion, lambda _: unrolled(None), a_mat)
+        return member_cond(forgets, frozen_recursion, lambda _, t: unrolled(t), a_mat, t, tangents_from=1)
 
-    def idle(_):
-        return d_bodies.velocity, d_bodies.angular_velocity, jnp.zeros_like(lam)
+    def idle(t):
+        return t[0].velocity, t[0].angular_velocity, jnp.zeros_like(lam)
 
     def converged(_):
         tol = jnp.sqrt(jnp.finfo(lam.dtype).eps) * jnp.max(jnp.abs(lam))
         return jnp.max(jnp.abs(sweep(lam, bodies, f, target, mu) - lam)) <= tol
 
     if not frozen_derivative:
-        return (velocity, omega, lam, count), (*jax.checkpoint(unrolled)(None), jnp.zeros_like(count))
+        return (velocity, omega, lam, count), (*jax.checkpoint(unrolled)(tangents), jnp.zeros_like(count))
     # (The convergence test costs a sweep: not run in flight, nor when the sweeps stopped early.)
     any_active = jnp.any(active)
     settled = any_active & member_cond(any_active & (count >= iterations), converged, lambda _: True, None)
@@ -871,5 +873,6 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
     # of the branches not taken, copied at every step; a checkpoint's are just its inputs.
     # member_switch: under a vmap (an ensemble's gradient) a plain switch ran all three for
     # every member, the sweep-by-sweep derivative above all (see member_switch).
-    tangent = member_switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], None)
+    tangent = member_switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], tangents,
+                            tangents_from=0)
     return (velocity, omega, lam, count), (*tangent, jnp.zeros_like(count))
