@@ -303,25 +303,36 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # Skipped where nothing is deeper than the slop (an impact from flight, most resting
     # contacts): with no slot to push, the solve returns the bodies at rest, exactly.
     pseudo = branch(jnp.any(push), correct, lambda b: b, still, recompute_in_reverse=True, saved=SAVE_NAMED)
-    pseudo_momentum = _omega_to_momentum(params, state, pseudo.angular_velocity,
-                                         still.angular_velocity, jnp.zeros_like(momentum))
-
-    end = _drift_kick(ctx, params, state, velocity, momentum, velocity + pseudo.velocity[: scene.num_bodies],
-                      momentum + pseudo_momentum, h, derived)
+    end = _drift_kick(ctx, params, state, velocity, momentum, velocity + pseudo.velocity[: scene.num_bodies], h,
+                      derived, turn=h * pseudo.angular_velocity[: scene.num_bodies])
     return dataclasses.replace(end, contact_impulse=lam.astype(state.position.dtype))
 
 
-def _drift_kick(ctx: _Ctx, params: Params, state: State, velocity, momentum, drift_velocity, drift_momentum,
-                h, derived) -> State:
-    """Steps 3 and 4: the force-free drift over ``h`` at the drift velocities (the solved ones
-    plus the split impulse's pseudo-velocities), then the closing half kick from the solved ones."""
-    moving = dataclasses.replace(state, velocity=drift_velocity, angular_momentum=drift_momentum,
-                                 contact_impulse=None)
+def _drift_kick(ctx: _Ctx, params: Params, state: State, velocity, momentum, drift_velocity, h, derived,
+                turn=None) -> State:
+    """Steps 3 and 4: the force-free drift over ``h`` (translation at ``drift_velocity``: the
+    solved velocities plus the split impulse's pseudo-velocities; attitude under the solved
+    angular momentum), then the split impulse's turn, then the closing half kick from the
+    solved velocities.
+
+    ``turn``: ``(N, 3)`` rad, world frame, the split impulse's rotation vectors (pseudo
+    angular velocities times ``h``), or ``None``. The body turns by it after the drift, and
+    its world angular momentum turns with it, so that the body-frame momentum, and with it
+    the kinetic energy, is the drift's. (Until 2026-12-04 the pseudo angular velocity was
+    added to the drift's angular momentum, which was then reset to the solved one in the
+    turned attitude: the spin changed, and a spinning capsule at dt = 10 ms, e = 1,
+    frictionless, gained 1.5e-4 of its kinetic energy in its impact step, a box landing at
+    20 m/s 0.64%.)"""
+    moving = dataclasses.replace(state, velocity=drift_velocity, angular_momentum=momentum, contact_impulse=None)
     free = free_scene_of(ctx.scene)
     if derived is None:
         drifted = ctx.integrator.step(free, params, moving, h)
     else:
         drifted = ctx.integrator.step(free, params, moving, h, derived)
+    if turn is not None:
+        rotation = spatial.quat_exp(turn)
+        drifted = dataclasses.replace(drifted, orientation=spatial.quat_multiply(rotation, drifted.orientation))
+        momentum = spatial.quat_rotate(rotation, momentum)
     drifted = dataclasses.replace(drifted, velocity=velocity, angular_momentum=momentum)
     return _closing_kick(ctx.scene, params, drifted, 0.5 * h)
 
@@ -334,7 +345,7 @@ def _free_step(ctx: _Ctx, params: Params, state: State, derived, h=None) -> Stat
     force, torque = wrench(ctx.scene, params, state)
     velocity = state.velocity + 0.5 * h * linear_acceleration(params, force)
     momentum = state.angular_momentum + 0.5 * h * torque
-    end = _drift_kick(ctx, params, state, velocity, momentum, velocity, momentum, h, derived)
+    end = _drift_kick(ctx, params, state, velocity, momentum, velocity, h, derived)
     return dataclasses.replace(end, contact_impulse=jnp.zeros_like(state.contact_impulse))
 
 
