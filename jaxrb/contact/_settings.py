@@ -45,9 +45,9 @@ class ContactSettings:
             (default): the square root of the state's machine epsilon (1.5e-8 in float64,
             3.5e-4 in float32), the level at which the derivative takes the sweeps as
             converged. ``0``: the sweeps stop only once one changes nothing. The float32
-            5-box stack of ``benchmarks/contacts.py`` ran 7.4 of its 20 sweeps a step on
-            average over its first 200 steps and 1.1 over the last 1000 of 2 s (float64:
-            20 and 1.0). Under ``vmap`` a sweep is skipped only once every member has
+            5-box stack of ``benchmarks/contacts.py`` ran 4.7 of its 20 sweeps a step on
+            average over its first 200 steps and 1.0 over the last 1000 of 2 s (float64:
+            20 and 1.0; counted 2026-12-04). Under ``vmap`` a sweep is skipped only once every member has
             converged.
         impact_iterations: sweeps of sequential collisions per impact; momentum crosses
             one contact per sweep in the worst slot order (a row of ``n`` touching balls
@@ -100,7 +100,7 @@ class ContactSettings:
             rounding of the poses (about 6e-8 m at 1 m in float32), which moves its
             speculative target by that over ``h`` (6e-5 m/s at h = 1 ms) and with it the
             impulses of every box above, more than the sweeps' tolerance. The float32 5-box
-            stack of ``benchmarks/contacts.py`` then ran 2.1 sweeps a step over its last
+            stack of ``benchmarks/contacts.py`` then ran 2.7 sweeps a step over its last
             1000 steps of 2 s, 43 of them at the 20-sweep cap, where with the default skin
             it runs one (tested). Default ``None``: 16 machine epsilons in metres, which
             covers that rounding for coordinates up to about 10 m (float32: 1.9e-6 m;
