@@ -1422,6 +1422,35 @@ def test_a_cylinder_is_the_exact_distance_apart_and_the_push_that_frees_it_when_
         np.testing.assert_allclose(surface_distance(shape_b, on_b), 0.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("other", ["box", "cylinder"])
+def test_a_cylinder_overlapping_a_shape_through_its_centre_is_pushed_out(other):
+    """Deep overlaps where the candidate points of one shape lie on the other's surface: a
+    cylinder (r = 0.2 m, half length 0.35 m) coaxial with an equal one (same centre, 1e-6,
+    0.2 and 0.3 m apart along the axis: every rim point on the other's side), one crossing
+    it at one centre, a box at the cylinder's centre (1e-6 off, and turned). Each centre is
+    inside the other shape, so slot 0 is the push along the best direction, within 1e-4 m
+    of the support-function reference's signed distance (the coaxial pairs' exact 2r = 0.4
+    m to 1e-12). Until 2026-12-04 the candidates'
+    gaps of 0 made these count as touching: no active slot, and two cans stacked 0.2 m into
+    each other stayed so (found by a fuzz)."""
+    along_x = axis_angle([1.0, 0.0, 0.0], np.pi / 2)
+    if other == "cylinder":
+        pa = [[0.0, 0.0, 0.0], [0.0, 0.0, 1e-6], [0.0, 0.0, 0.2], [0.0, 0.0, 0.3], [0.0, 0.0, 0.0]]
+        qa = [IDENTITY] * 4 + [along_x]
+    else:
+        pa = [[1e-6, 0.0, 0.0], [0.0, 1e-6, 0.0], [0.0, 0.0, 1e-6]]
+        qa = [IDENTITY, along_x, axis_angle([1.0, 2.0, 3.0], 0.7)]
+    pb, qb = np.zeros((len(pa), 3)), np.tile(IDENTITY, (len(pa), 1))
+    c = run("cylinder", other, pa, qa, pb, qb)
+    assert np.all(c.active[:, 0]) and np.all(np.isfinite(c.gap))
+    refs = np.array([_cylinder_overlap(body("cylinder", pa[i], qa[i]), body(other, pb[i], qb[i]))
+                     for i in range(len(pa))])
+    assert np.all(refs < -0.1), refs
+    np.testing.assert_allclose(c.gap[:, 0], refs, rtol=0, atol=1e-4)
+    if other == "cylinder":
+        np.testing.assert_allclose(c.gap[:4, 0], -0.4, rtol=0, atol=1e-12)
+
+
 def _cylinder_contact(cylinder, pa, qa, other, pb, qb, margin=0.01):
     c = collision.collide(cylinder, jnp.asarray(pa, float), jnp.asarray(qa, float), other, jnp.asarray(pb, float),
                           jnp.asarray(qb, float), margin)

@@ -218,14 +218,23 @@ def cylinder_box(
                                   box_points[:8] - rims_near[:8]])
     push_normal, push_gap = _best_separating_direction(
         directions, pa - pb, lambda n: _cylinder_reach(n, axis, radius, half) + _box_reach(n, axes_b, half_box))
-    return _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin)
+    centre_inside = ((signed_distance(pb) < -round_off)
+                     | (ball_box_contact(pa, 0.0, pb, axes_b, half_box)[2] < -round_off))
+    return _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin, centre_inside)
 
 
-def _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin) -> Contact:
+def _with_push(surface, normal, gap, found, push_normal, push_gap, round_off, scale, margin,
+               centre_inside) -> Contact:
     """The slots, with slot 0 along the best separating direction where the shapes overlap
-    (its gap the overlap along it) or touch to within the searches' resolution."""
+    (its gap the overlap along it) or touch to within the searches' resolution.
+
+    ``centre_inside``: either shape's centre is inside the other (by more than round-off),
+    so they overlap whatever the candidates say. Every candidate of two coaxial cylinders
+    of one radius lies on the other's surface (its gap 0), and they had counted as touching
+    however deep they overlapped (two cans stacked 0.2 m into each other, or at one centre:
+    no contact at all), as had a box at a cylinder's centre."""
     # (Inside by more than round-off: touching shapes keep their exact candidate.)
-    overlap = gap[0] < -round_off
+    overlap = (gap[0] < -round_off) | centre_inside
     # Touching to within the searches (which place a point to ~1e-10 of an edge's length or
     # a rim's arc, so where a rim meets an edge, whose distance has a kink at 0, its point's
     # normal can be any direction), slot 0 takes the best direction too where that is as
@@ -402,8 +411,10 @@ def cylinder_cylinder(
                                   nearest_a, nearest_b, rims_across])
     push_normal, push_gap = _best_separating_direction(
         directions, pa - pb, lambda n: _cylinder_reach(n, axes_a[2], *a[2:]) + _cylinder_reach(n, axes_b[2], *b[2:]))
+    centre_inside = ((ball_cylinder_contact(pa, 0.0, *b)[2] < -round_off)
+                     | (ball_cylinder_contact(pb, 0.0, *a)[2] < -round_off))
     return _with_push(surface[chosen], normal[chosen], gap[chosen], found, push_normal, push_gap, round_off, scale,
-                      margin)
+                      margin, centre_inside)
 
 
 def _cylinder_points(this, other, dtype, round_off):
