@@ -102,9 +102,10 @@ class ContactSettings:
             impulses of every box above, more than the sweeps' tolerance. The float32 5-box
             stack of ``benchmarks/contacts.py`` then ran 2.7 sweeps a step over its last
             1000 steps of 2 s, 43 of them at the 20-sweep cap, where with the default skin
-            it runs one (tested). Default ``None``: 16 machine epsilons in metres, which
-            covers that rounding for coordinates up to about 10 m (float32: 1.9e-6 m;
-            float64: 3.6e-15 m).
+            it runs one (tested). Default ``None``: 16 machine epsilons in metres (float32:
+            1.9e-6 m, 30 times that rounding near 1 m; float64: 3.6e-15 m). Far from the
+            origin the rounding grows with the coordinates (near 10 m, about 5e-7 m a coordinate
+            in float32): a scene there may need a larger skin (not measured).
         correction_slop: m, penetration the split impulse leaves alone. Below it, the
             overlap a resting solve leaves (its own error, about 2e-4 m in a PGS stack of
             a 100 kg box on a 1 kg one) is left to that solve: correcting it every step,
