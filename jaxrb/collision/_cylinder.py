@@ -36,9 +36,11 @@ cap or side line, where an end, a corner or an edge point over it is as close. B
 of :data:`._plane.TILT_RAMP` from a face's normal, the "lowest" cap point slides in towards
 the cap's centre (as in cylinder-plane), up to ``r TILT_RAMP / 4`` above the rim.
 
-Where the deepest candidate is inside the other solid by more than round-off, the shapes
-overlap: slot 0 keeps that point but takes the separating direction along which the shapes
-overlap least, and that overlap as its gap, a push that frees the shapes (a point's own
+Where the deepest candidate is inside the other solid by more than round-off, or either
+shape's centre is inside the other (two equal coaxial cylinders have every candidate on
+the other's surface, however deep they overlap), the shapes overlap: slot 0 keeps that
+point but takes the separating direction along which the shapes overlap least, and that
+overlap as its gap, a push that frees the shapes (a point's own
 depth would free that point only). The directions tried are the box's face normals, the
 cylinder's axis, every candidate's normal (held and nearest), and where a box edge or
 corner meets a rim, the direction across the two (perpendicular to the edge and to the rim
