@@ -794,6 +794,44 @@ def test_one_contacts_coulomb_impulse_meets_its_conditions():
         assert all(np.all(np.isfinite(g)) for g in grads), (u0, value, to_velocity)
 
 
+_BARELY_APPROACHING = """
+import numpy as np, jax, jax.numpy as jnp
+from jaxrb.contact._coulomb import coulomb_impulse
+rng = np.random.default_rng(0)
+n = 120
+root = rng.normal(size=(n, 3, 3))
+k = (root @ np.swapaxes(root, 1, 2) + 0.1 * np.eye(3)) * 10.0 ** rng.uniform(-1, 2, (n, 1, 1))
+u = np.concatenate([np.full((n, 1), -1e-10), 5 * rng.normal(size=(n, 2))], axis=1)
+mu = rng.uniform(0.05, 1.0, n)
+def loss(k, u, mu, value):
+    return jnp.sum(coulomb_impulse(k, u, mu, value, True) * jnp.array([1.0, 0.3, 0.7], k.dtype))
+gradient = jax.jit(jax.vmap(jax.grad(loss, argnums=(0, 1, 2, 3))))
+grads = gradient(*(jnp.asarray(x, jnp.float32) for x in (k, u, mu, np.zeros(n))))
+print("RESULT", sum(int(np.sum(~np.isfinite(np.asarray(g)))) for g in grads), grads[0].dtype)
+"""
+
+
+def test_a_barely_approaching_sliding_contact_has_finite_float32_gradients():
+    """A contact approaching at 1e-10 m/s and sliding at metres a second (a ball meeting a
+    sliding box in float32) pushes with a tiny ``p``: the friction multiplier's root lies
+    near 1e12. Reverse mode through the Newton steps had differentiated their slopes too
+    (second derivatives of ``1/|x|``), which overflowed: 143 NaN entries in the gradients of
+    these 120 contacts (and an all-NaN gradient of a 200-step ball-and-box rollout, found by
+    a fuzz). The root's derivative is now the implicit function theorem's, at the root.
+    XLA's default flags, as users run (the suite's flag changed the rounding: no NaN there),
+    hence the subprocess. Float32 cannot resolve these gradients, which hang on a 1e-10 m/s
+    approach; finite is the bar. Where float32 can (``test_one_contacts_coulomb_impulse_
+    meets_its_conditions``'s 400 random contacts) its gradients came within 2.7e-4 of
+    float64's, relative to each contact's largest entry, as before; float64's equal those
+    of the Newton steps to 6e-14."""
+    env = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
+    out = subprocess.run([sys.executable, "-c", _BARELY_APPROACHING], capture_output=True, text=True,
+                         timeout=600, env=env, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-3000:]
+    nonfinite, dtype = out.stdout.split("RESULT")[-1].split()
+    assert dtype == "float32" and int(nonfinite) == 0, out.stdout
+
+
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
 def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):
     """resolve_impacts: two touching balls (1 and 3 kg) approaching at 0.1 m/s, below the

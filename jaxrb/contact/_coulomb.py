@@ -23,10 +23,13 @@ closed forms of a rod landing on its end (``u_n' = -e u_n``).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 from .._branch import branch
+from .._implicit import implicit_root
 
 __all__ = ["coulomb_impulse", "energy_change", "fraction_within", "frictionless_impulse", "largest_fraction"]
 
@@ -40,6 +43,13 @@ ITERATIONS = 16
 
 def _where_positive(x, fallback=1.0):
     return jnp.where(x > 0, x, fallback)
+
+
+def _reciprocal(x):
+    """``1 / x`` for ``x >= 0``, with ``x`` held at least ``tiny ** (1/4)`` (float32 3.3e-10 N s,
+    float64 1.2e-77): its derivative ``-1/x^2`` stays finite. At a float32 ``|x|`` of 1e-20
+    it would overflow, and reverse mode multiply the infinity by a zero cotangent (NaN)."""
+    return 1.0 / jnp.maximum(x, jnp.finfo(jnp.result_type(x)).tiny ** 0.25)
 
 
 def _solve2(a, lam, v):
@@ -59,6 +69,25 @@ def _norm(v):
     return _safe_sqrt(jnp.sum(v * v))
 
 
+def _impulse(lam, theta):
+    """``(p, x)`` at the friction multiplier ``lam`` (see :func:`coulomb_impulse`);
+    ``theta = (k, u, mu, value, to_velocity)``, the flag as a number."""
+    k, u, _, value, to_velocity = theta
+    a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
+    a_inv_c, a_inv_slip = _solve2(a, lam, coupling), _solve2(a, lam, slip)
+    normal = (value - u[0] + jnp.dot(coupling, a_inv_slip)) / _where_positive(k[0, 0] - jnp.dot(coupling, a_inv_c))
+    p = jnp.where(to_velocity > 0, normal, value)
+    return p, -(a_inv_slip + a_inv_c * p)
+
+
+def _phi(lam, theta):
+    """``1/|x(lam)| - 1/(mu p(lam))``, rising through the sliding multiplier's root."""
+    p, x = _impulse(lam, theta)
+    mu = theta[2]
+    # Where p(lam) <= 0 (to a velocity, at too small a lam), it is left of the root.
+    return jnp.where(mu * p > 0, _reciprocal(_norm(x)) - _reciprocal(mu * p), -1.0)
+
+
 def coulomb_impulse(k, u, mu, value, to_velocity):
     """The impulse ``(p, x)`` ``(3,)``: ``p = value`` given (N s), or, where ``to_velocity``
     (a bool, traced or not), the one that brings ``u_n`` to ``value`` (m/s); ``x`` by
@@ -72,12 +101,8 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     the impact law's passes select theirs with a traced flag."""
     a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
     need = value - u[0]
-
-    def impulse(lam):
-        a_inv_c, a_inv_slip = _solve2(a, lam, coupling), _solve2(a, lam, slip)
-        normal = (need + jnp.dot(coupling, a_inv_slip)) / _where_positive(k[0, 0] - jnp.dot(coupling, a_inv_c))
-        p = jnp.where(to_velocity, normal, value)
-        return p, -(a_inv_slip + a_inv_c * p)
+    theta = (k, u, mu, value, jnp.asarray(to_velocity, k.dtype))  # the flag as a number: a float tangent
+    impulse = functools.partial(_impulse, theta=theta)
 
     p_stick, x_stick = impulse(0.0)
     sticks = (p_stick >= 0) & (jnp.sum(x_stick * x_stick) <= (mu * p_stick) ** 2)
@@ -94,10 +119,12 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     spread = _safe_sqrt((a[0, 0] - a[1, 1]) ** 2 / 4 + a[0, 1] ** 2)  # 0 for an isotropic k_tt
     start = jnp.clip(_norm(slip + coupling * reference) / radius - (a[0, 0] + a[1, 1]) / 2 - spread, 0.0, hi)
 
-    def phi(lam):
-        p, x = impulse(lam)
-        # Where p(lam) <= 0 (to a velocity, at too small a lam), it is left of the root.
-        return jnp.where(mu * p > 0, 1.0 / _where_positive(_norm(x)) - 1.0 / _where_positive(mu * p), -1.0)
+    # The search runs without tangents; the root's derivative is the implicit function
+    # theorem's (phi rises through the root). Reverse mode through the Newton steps had
+    # differentiated their slopes too: second derivatives of 1/|x|, which overflowed in
+    # float32 where the root lies near 1e12 (a contact barely approaching, sliding fast):
+    # NaN gradients.
+    phi = functools.partial(_phi, theta=jax.lax.stop_gradient(theta))
 
     def newton(carry, _):
         lam, lo, hi = carry
@@ -110,18 +137,19 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
         return (jnp.where(inside, step, middle), lo, hi), None
 
     def root(start, hi):
+        start, hi = jax.lax.stop_gradient((start, hi))
         (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
-        return lam
+        return implicit_root(_phi, lam, theta, 1)
 
     # The search only where its root is used: a sliding contact that pushes. (Under the
     # impact law's vmap over pairs, ``branch`` still skips it when no pair needs it, in
-    # derivatives too.) Recomputed in reverse mode: its 16 iterations' residuals are not
-    # zero-filled where it is skipped.
+    # derivatives too.) Recomputed in reverse mode, so that no residuals are zero-filled
+    # where it is skipped.
     slides_at_all = (mu > 0) & ~sticks & (jnp.where(to_velocity, need, value) > 0)
     lam = branch(slides_at_all, root, lambda start, _: start, start, hi, recompute_in_reverse=True)
     p, x = impulse(lam)
     # On the disk (an iterate short of the root leaves |x| a little over mu p).
-    x = x * jnp.minimum(1.0, mu * p / _where_positive(_norm(x)))
+    x = x * jnp.minimum(1.0, mu * p * _reciprocal(_norm(x)))
     slides = jnp.concatenate([jnp.reshape(p, (1,)), x])
     stuck = jnp.concatenate([jnp.reshape(p_stick, (1,)), x_stick])
     result = jnp.where(sticks, stuck, slides)

@@ -61,6 +61,7 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .. import spatial
 from .._branch import branch
+from .._implicit import implicit_root
 from .._indexing import literal_array, take_rows
 from .._static import static_step_length
 from ..dynamics import linear_acceleration, wrench
@@ -461,7 +462,7 @@ def _time_of_impact(ctx: _Ctx, state: State, flight, end_sep, lower, choose, kno
     and overlap at ``tau = 1``: their smallest separations at both ends bracket the root.
     Its value comes from a fixed number of Illinois steps and a last secant step through
     the bracket's true values, without tangents; its derivative is the implicit function
-    theorem's (:func:`_implicit_root`).
+    theorem's (:func:`jaxrb._implicit.implicit_root`).
 
     The opening is the loop's first iteration, not an evaluation of its own: the compiled
     step holds one copy of the separations for every search (see :func:`_split_points`).
@@ -519,35 +520,16 @@ def _time_of_impact(ctx: _Ctx, state: State, flight, end_sep, lower, choose, kno
     # Named, as is the root: reverse mode through a checkpointed step reads them back
     # instead of running the search again.
     root, pairs = checkpoint_name(jax.lax.stop_gradient((root, pairs)), TIME_OF_IMPACT)
-    tau = jnp.clip(_implicit_root(distance, root, (state, flight, pairs)), 0.0, 1.0)
+    # The derivative by the implicit function theorem, as a rule of its own (not a Newton
+    # step ``root - distance / slope`` traced into the step, as until 2026-11-27): a program
+    # that takes no derivative traces the separations once, in the root search, and a
+    # derivative program does not differentiate the slope again. Measured in alternating
+    # processes (float32 stack, float64 ball): the 5-box stack's 200-step rollout 16,386 ->
+    # 14,663 lines of StableHLO and 11.1-11.9 -> 9.5-10.6 s to trace and compile; the
+    # 1000-step ball's gradient 29.4-29.6 -> 27.9-28.2 s; the same values to the last digit
+    # printed. The pair closes at the root (slope < 0).
+    tau = jnp.clip(implicit_root(distance, root, (state, flight, pairs), -1), 0.0, 1.0)
     return jnp.where(jnp.any(pairs), tau, one), pairs
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _implicit_root(distance, root, theta):
-    """``root``, a root of ``distance(tau, theta)`` in ``tau``; its derivative is the implicit
-    function theorem's, ``d tau = -(d distance / d theta) d theta / (d distance / d tau)``.
-
-    As a rule of its own (not a Newton step ``root - distance / slope`` traced into the
-    step, as until 2026-11-27), a program that takes no derivative traces the separations
-    once, in the root search, and a derivative program does not differentiate the slope
-    again. Measured in alternating processes (float32 stack, float64 ball): the 5-box
-    stack's 200-step rollout 16,386 -> 14,663 lines of StableHLO and 11.1-11.9 -> 9.5-10.6 s
-    to trace and compile; the 1000-step ball's gradient 29.4-29.6 -> 27.9-28.2 s. The same values to
-    the last digit printed (the stack's top box, the ball's gradient).
-    """
-    return root
-
-
-@_implicit_root.defjvp
-def _implicit_root_jvp(distance, primals, tangents):
-    root, theta = primals
-    _, d_theta = tangents
-    _, slope = jax.jvp(lambda t: distance(t, theta), (root,), (jnp.ones_like(root),))
-    _, d_value = jax.jvp(lambda th: distance(root, th), (theta,), (d_theta,))
-    # The pair closes at the root (slope < 0); a degenerate (grazing) one gets a finite derivative.
-    slope = jnp.where(slope < 0, slope, -1.0)
-    return root, -d_value / slope
 
 
 def _branch_test(ctx: _Ctx, params: Params, state: State):
