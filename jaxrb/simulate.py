@@ -203,25 +203,6 @@ def _penetration_limit(scene: Scene, debug: bool, max_penetration) -> float:
     return limit
 
 
-def _floating(x) -> bool:
-    return jnp.issubdtype(x.dtype, jnp.inexact)  # not integer leaves, nor their float0 tangents
-
-
-@jax.custom_jvp
-def _with_tangent_of(state: State, params: Params) -> State:
-    """``state`` itself. In forward mode its tangent becomes a function of the params'
-    tangent (its value is unchanged: zero where the state has none). See :func:`_rollout`."""
-    return state
-
-
-@_with_tangent_of.defjvp
-def _with_tangent_of_jvp(primals, tangents):
-    state, _ = primals
-    state_dot, params_dot = tangents
-    tie = 0.0 * sum(jnp.sum(x) for x in jax.tree.leaves(params_dot) if _floating(x))
-    return state, jax.tree.map(lambda x: x + jnp.asarray(tie, x.dtype) if _floating(x) else x, state_dot)
-
-
 @eqx.filter_jit
 def _rollout(step, params, state, num_steps: int, save_every: int, checkpoint: bool, members: bool = False):
     """:func:`rollout`'s loop, for one member (``members``: whether it is one of an
@@ -238,15 +219,14 @@ def _scan_steps(step, params, state, num_steps: int, save_every: int, checkpoint
     """The loop of :func:`rollout`; with ``chunk > 1`` (``save_every == 1`` only), the
     recorded states are stacked ``chunk`` steps at a time."""
     dt = step.dt if isinstance(step, Step) else None
-    # Differentiating a scan linearises its body again each time the set of carries with
-    # a tangent grows. From a state without one (a gradient with respect to params only),
-    # the first pass finds that the state gets one after a step, and the whole step is
-    # linearised a second time. Tying the initial state's (zero) tangent to the params'
-    # makes the first pass the last. Measured on jit(grad(loss)).lower() of the 1000-step
-    # bouncing ball (benchmarks/gradients.py's loss): 10.3-10.5 s instead of 15-17 s. The
-    # gradients are identical to the last bit, and the compiled program's run time is
-    # unchanged within this machine's noise.
-    state = _with_tangent_of(state, params)
+    # (Until 2026-12-05 a custom_jvp here tied the initial state's zero tangent to the
+    # params', so that differentiating the scan found the carries with a tangent in one
+    # pass: it had cut the ball's gradient tracing from 15-17 s to 10.3-10.5 s. Measured
+    # again before removing it, two alternating runs of jit(grad(loss)).lower() of the
+    # 1000-step ball with respect to its params: 19.4 and 18.9 s with it, 17.4 and 19.0 s
+    # without. It no longer helped, and under jax.grad of a loss summed over a jax.vmap with
+    # batched params its rule was batched with tangents where its primals were not: the
+    # rollout failed to trace, a broadcast_in_dim TypeError.)
     t0 = state.time
     # Groups of steps tried as free flight first (see _speculative): the chunks of a
     # recording rollout, or segments of save_every steps (in parts of attempt_length).

@@ -339,6 +339,36 @@ def test_an_ensembles_gradient_through_contacts_is_its_members_gradients():
         assert np.all(np.isfinite(got[0].restitution)) and float(jnp.abs(got[0].restitution[0])) > 0
 
 
+def test_the_gradient_of_a_sum_over_an_ensemble_with_batched_params_is_its_members_gradients():
+    """``jax.grad`` of a loss summed over ``jax.vmap`` whose params are built per member
+    (mass and restitution from the member's own parameters): it equals each member's own
+    gradient. It had failed to trace (a ``broadcast_in_dim`` TypeError in the rollout's
+    linearisation, found by a fuzz: a ``custom_jvp``, since removed, that tied the initial
+    state's tangent to the params' was batched with tangents where its primals were not);
+    ``jax.vmap(jax.grad)`` had worked. The scene has no contacts: the failure was in the loop common to all (the
+    fuzz's ball-and-box scene with contacts: the same values both ways after the fix)."""
+    with jax.enable_x64(True):
+        scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0),
+                          rb.Body("b", shape=rb.Box((0.1, 0.1, 0.1)), mass=2.0)])
+        step = rb.make_step(scene, rb.integrators.SemiImplicitEuler(), 1e-3)
+
+        def loss(theta):
+            mass, e = theta[0], theta[1]
+            params = scene.params(dtype=jnp.float64)
+            params = params.replace(mass=params.mass.at[0].set(mass), inertia=params.inertia.at[1].multiply(e))
+            state = scene.state(params, position=[[0.0, 0.0, 0.12], [0.5, 0.0, 0.11]],
+                                velocity=jnp.stack([jnp.stack([0.3 * mass, 0.0, -1.0]), jnp.array([0.0, 0.0, -0.5])]),
+                                angular_velocity=[[0.0, 0.0, 0.0], [1.0, 2.0, 0.5]])
+            final = rb.rollout(step, params, step.prepare(state), 40)[0]
+            return jnp.sum(final.position) + jnp.sum(final.velocity) + 0.1 * jnp.sum(final.angular_momentum)
+
+        thetas = jnp.array([[1.0, 0.8], [1.5, 0.5]])
+        got = jax.grad(lambda t: jnp.sum(jax.vmap(loss)(t)))(thetas)
+        want = jax.vmap(jax.grad(loss))(thetas)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+        assert np.all(np.abs(np.asarray(want)) > 0)
+
+
 def _primitive_count(jaxpr, name: str) -> int:
     """How many ``name`` equations a jaxpr holds, sub-jaxprs (cond branches, scans) included."""
     count = 0
