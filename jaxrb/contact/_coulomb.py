@@ -11,7 +11,8 @@ is the minimiser of the kinetic energy over the disk,
     x = argmin_{|x| <= mu p}  x . (u_t + k_tn p) + x . k_tt x / 2,
 
 so friction never adds energy whatever ``p`` is. These functions are written for one
-contact and vmapped; their loops have fixed lengths, so reverse mode crosses them.
+contact and vmapped; their loops have fixed lengths. Reverse mode does not cross the
+friction multiplier's Newton loop: its root has the implicit function theorem's derivative.
 
 The impact law (:mod:`._solver`) uses them in two phases (Poisson's hypothesis):
 compression to ``u_n = 0`` with friction (:func:`coulomb_impulse` to a velocity), then
