@@ -837,24 +837,27 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
     def unrolled(t):
         return jax.jvp(lambda *p: _pgs_sweeps(iterations, normal_only, tolerance, False, *p)[:3], primals, t)[1]
 
-    def frozen(t):
+    def contraction(_):
+        # The sweep's Jacobian at the solution, and whether it forgets: where A keeps a
+        # direction (|eigenvalue| near 1: the redundant normal impulses of four corners on a
+        # face, their friction sliding different ways as the box spins), the warm start's
+        # tangent along it never decays, and the sweeps apply their own iterates' Jacobians to
+        # it, not the solution's: the frozen recursion drifts from the derivative of what the
+        # sweeps computed (5e-5 of it a step; a spinning, sliding box's mass derivative 1.6e-3
+        # off differences after 200 steps). It is not the tangent sweep's b piling up along
+        # the mode: P b was 1e-13 (benchmarks/README.md, "The frozen derivative on a face").
+        # There, the sweeps' own derivative. The test: A^(2^m), 2^m >= iterations, by
+        # squaring, on the active slots (the sweeps leave the padding slot as it is: an
+        # identity block).
         a_mat = jax.jacfwd(lambda x: sweep(x.reshape(lam.shape), bodies, f, target, mu).reshape(-1))(lam.reshape(-1))
-        # Where A keeps a direction (|eigenvalue| near 1: the redundant normal impulses of
-        # four corners on a face, their friction sliding different ways as the box spins),
-        # the warm start's tangent along it never decays, and the sweeps apply their own
-        # iterates' Jacobians to it, not the solution's: the frozen recursion drifts from
-        # the derivative of what the sweeps computed (5e-5 of it a step; a spinning, sliding
-        # box's mass derivative 1.6e-3 off differences after 200 steps). It is not the
-        # tangent sweep's b piling up along the mode: P b was 1e-13 (benchmarks/README.md,
-        # "The frozen derivative on a face"). There, the sweeps' own derivative. The test:
-        # A^(2^m), 2^m >= iterations, by squaring, on the active slots (the sweeps leave the
-        # padding slot as it is: an identity block).
         kept = jnp.repeat(active, 3).astype(a_mat.dtype)
         power = a_mat * kept[:, None] * kept[None, :]
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
             power = power @ power
-        forgets = jnp.max(jnp.abs(power)) <= FORGOTTEN
-        return member_cond(forgets, frozen_recursion, lambda _, t: unrolled(t), a_mat, t, tangents_from=1)
+        return a_mat, jnp.max(jnp.abs(power)) <= FORGOTTEN
+
+    def no_contraction(_):
+        return jnp.zeros((lam.size, lam.size), lam.dtype), jnp.zeros((), bool)
 
     def idle(t):
         return t[0].velocity, t[0].angular_velocity, jnp.zeros_like(lam)
@@ -868,11 +871,16 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
     # (The convergence test costs a sweep: not run in flight, nor when the sweeps stopped early.)
     any_active = jnp.any(active)
     settled = any_active & member_cond(any_active & (count >= iterations), converged, lambda _: True, None)
-    branch = jnp.where(any_active, jnp.where(settled, 1, 2), 0)
+    # The Jacobian and its test outside the switch, so that the sweeps' own derivative is
+    # one branch of it, not also the fallback of a frozen branch: the 1000-step bouncing
+    # ball's gradient program held two copies of it (44,522 lines of StableHLO, compiled
+    # in 17.2 s; see benchmarks/README.md, "One copy of the sweeps' derivative").
+    a_mat, forgets = member_cond(settled, contraction, no_contraction, None)
+    branch = jnp.where(any_active, jnp.where(settled & forgets, 1, 2), 0)
     # The branches under ``jax.checkpoint``: a switch's linearisation zero-fills the residuals
     # of the branches not taken, copied at every step; a checkpoint's are just its inputs.
     # member_switch: under a vmap (an ensemble's gradient) a plain switch ran all three for
     # every member, the sweep-by-sweep derivative above all (see member_switch).
-    tangent = member_switch(branch, [idle, jax.checkpoint(frozen), jax.checkpoint(unrolled)], tangents,
-                            tangents_from=0)
+    tangent = member_switch(branch, [lambda _, t: idle(t), jax.checkpoint(frozen_recursion),
+                                     jax.checkpoint(lambda _, t: unrolled(t))], a_mat, tangents, tangents_from=1)
     return (velocity, omega, lam, count), (*tangent, jnp.zeros_like(count))
