@@ -794,6 +794,30 @@ def test_one_contacts_coulomb_impulse_meets_its_conditions():
         assert all(np.all(np.isfinite(g)) for g in grads), (u0, value, to_velocity)
 
 
+#: The float32 5-box stack of benchmarks/contacts.py, for scripts run in a fresh process
+#: (:func:`_result_of_script`).
+_FLOAT32_STACK = """
+import json, numpy as np, jax, jax.numpy as jnp, jaxrb as rb
+box = rb.Box((0.1, 0.1, 0.1))
+scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(5)], ground=rb.Plane(), contacts="all")
+params = scene.params(friction=0.5, dtype=jnp.float32)
+state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)])
+"""
+
+
+def _result_of_script(script: str, *, x64: bool | None = None, xla_defaults: bool = True) -> str:
+    """Run ``script`` in a fresh Python process (from the repository root) and return what
+    it printed after ``RESULT``. ``x64``: set ``JAX_ENABLE_X64`` (``None``: as here).
+    ``xla_defaults``: without this suite's ``XLA_FLAGS`` (see conftest), as users run."""
+    env = {key: value for key, value in os.environ.items() if not (xla_defaults and key == "XLA_FLAGS")}
+    if x64 is not None:
+        env["JAX_ENABLE_X64"] = "1" if x64 else "0"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, env=env,
+                         cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout.split("RESULT")[-1]
+
+
 _BARELY_APPROACHING = """
 import numpy as np, jax, jax.numpy as jnp
 from jaxrb.contact._coulomb import coulomb_impulse
@@ -824,12 +848,9 @@ def test_a_barely_approaching_sliding_contact_has_finite_float32_gradients():
     meets_its_conditions``'s 400 random contacts) its gradients came within 2.7e-4 of
     float64's, relative to each contact's largest entry, as before; float64's equal those
     of the Newton steps to 6e-14."""
-    env = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
-    out = subprocess.run([sys.executable, "-c", _BARELY_APPROACHING], capture_output=True, text=True,
-                         timeout=600, env=env, cwd=ROOT)
-    assert out.returncode == 0, out.stderr[-3000:]
-    nonfinite, dtype = out.stdout.split("RESULT")[-1].split()
-    assert dtype == "float32" and int(nonfinite) == 0, out.stdout
+    result = _result_of_script(_BARELY_APPROACHING)
+    nonfinite, dtype = result.split()
+    assert dtype == "float32" and int(nonfinite) == 0, result
 
 
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
@@ -1690,8 +1711,7 @@ def test_five_box_stack_stays_still_for_ten_seconds():
     assert drift.max() <= 1e-3
 
 
-_SETTLED_STACK_SWEEPS = """
-import json, numpy as np, jax, jax.numpy as jnp, jaxrb as rb
+_SETTLED_STACK_SWEEPS = _FLOAT32_STACK + """
 from jaxrb.contact import _solver
 counts, sweeps = [], _solver._colour_sweeps
 def counted(*args, **kwargs):  # every solve's sweep count, by a callback
@@ -1699,10 +1719,6 @@ def counted(*args, **kwargs):  # every solve's sweep count, by a callback
     jax.debug.callback(lambda n: counts.append(int(n)), out[2])
     return out
 _solver._colour_sweeps = counted
-box = rb.Box((0.1, 0.1, 0.1))
-scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(5)], ground=rb.Plane(), contacts="all")
-params = scene.params(friction=0.5, dtype=jnp.float32)
-state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)])
 step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
 run = jax.jit(lambda p, s: rb.rollout(step, p, s, 1000, save_every=1000)[0])
 settled = jax.block_until_ready(run(params, state))
@@ -1724,12 +1740,7 @@ def test_a_settled_float32_stack_runs_one_sweep_a_step():
     The rocking depends on the last bit of the rounding, which x64 mode and the suite's XLA
     flag change (in this suite's process the start did not rock without the skin), hence
     the subprocess. Top box within 0.05 mm of its start (measured 4.7e-6 m; 1.3e-5 m)."""
-    env = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
-    env["JAX_ENABLE_X64"] = "0"
-    out = subprocess.run([sys.executable, "-c", _SETTLED_STACK_SWEEPS], capture_output=True, text=True,
-                         timeout=600, env=env, cwd=ROOT)
-    assert out.returncode == 0, out.stderr[-3000:]
-    result = json.loads(out.stdout.split("RESULT")[-1])
+    result = json.loads(_result_of_script(_SETTLED_STACK_SWEEPS, x64=False))
     counts = np.asarray(result["counts"])
     assert result["dtype"] == "float32" and counts.shape == (1000,), (result["dtype"], counts.shape)
     assert (counts > 1).sum() <= 10 and counts.max() < 20, np.bincount(counts)
@@ -1827,12 +1838,7 @@ def test_stack_in_float32_is_finite_and_holds():
     assert np.abs(np.asarray(final.position - state.position)).max() < 1e-3
 
 
-_PURE_FLOAT32_STACK = """
-import json, numpy as np, jax, jax.numpy as jnp, jaxrb as rb
-box = rb.Box((0.1, 0.1, 0.1))
-scene = rb.Scene([rb.Body(f"box{i}", shape=box, mass=1.0) for i in range(5)], ground=rb.Plane(), contacts="all")
-params = scene.params(friction=0.5, dtype=jnp.float32)
-state = scene.state(params, position=[[0.0, 0.0, 0.1 + 0.2 * i] for i in range(5)])
+_PURE_FLOAT32_STACK = _FLOAT32_STACK + """
 step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3, contact=rb.ContactSettings(solver="exact"))
 _, traj = rb.rollout(step, params, state, 2000, save_every=10)
 x = np.asarray(traj.position, float)
@@ -1853,11 +1859,7 @@ def test_exact_solver_stack_in_pure_float32_holds():
     (``test_default_precision``), but XLA compiles the program differently (a 3-box stack's
     positions differ by 1e-5 m after 0.3 s), and that version of this test passed with the bug.
     """
-    env = {**os.environ, "JAX_ENABLE_X64": "0"}
-    out = subprocess.run([sys.executable, "-c", _PURE_FLOAT32_STACK], capture_output=True, text=True,
-                         timeout=600, env=env, cwd=ROOT)
-    assert out.returncode == 0, out.stderr[-3000:]
-    result = json.loads(out.stdout.split("RESULT")[-1])
+    result = json.loads(_result_of_script(_PURE_FLOAT32_STACK, x64=False, xla_defaults=False))
     assert result["finite"] and result["drift"] <= 1e-3, result  # measured 5.8e-7 m
 
 
