@@ -41,8 +41,8 @@ class ContactSettings:
         iterations: PGS sweeps per solve, at most (``"exact"``: outer normal/friction
             alternations, always all of them). Too few sweeps leave a warm-started solve
             unconverged, and the impulses it keeps may push: with ``iterations=1`` a box
-            landing flat on a face at 0.13 m/s with e = 0 came back up at 0.018 m/s a few
-            steps later, gaining 3.6e-4 J in that step (of the 0.011 J the landing took;
+            landing flat on a face at 0.13 m/s with e = 0 came back up at 0.018 m/s in the
+            third step of its landing, gaining 3.6e-4 J in it (of the 0.012 J the landing took;
             the most any step gained was 5e-9 J with the default, 5e-7 J with one sweep and
             no warm start; float64, h = 1 ms; found by a fuzz on 2026-12-05).
         tolerance: the PGS sweeps (and the split impulse's) stop after the first sweep that
