@@ -26,11 +26,11 @@ from ..collision import Contact, collide, concatenate_contacts, max_contacts, su
 from ..collision._box import box_box_separation
 from ..collision._capsule import capsule_box_separation, capsule_cylinder_separation
 from ..scene import Scene
-from ..shapes import Box, Capsule, Cylinder, Sphere
+from ..shapes import Box, Capsule, Cylinder, Plane, Sphere
 from ..state import State
 
-__all__ = ["Layout", "bodies_with_slots", "build_layout", "detect", "pair_separations", "slot_values",
-           "with_pair_slots"]
+__all__ = ["Layout", "bodies_with_slots", "build_layout", "detect", "level_of_pairs", "pair_separations",
+           "slot_values", "with_pair_slots"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,6 +58,16 @@ class _Group:
     @property
     def shape_b(self):
         return self.shapes_b[0]
+
+    @property
+    def levelled(self) -> bool:
+        """Whether the split impulse levels each pair's slots (``ContactSettings.correction_slop``):
+        box-box and box-plane pairs, whose slots of one contact are the corners of a face on
+        a face, or clipped to one. Not curved shapes: the slots of a can standing off centre
+        on another overhang its cap's rim, and levelled they turned it back and forth every
+        step (the split impulse moves bodies without friction), and the top can of a
+        tower crept 6e-5 m in 0.6 s instead of 3e-6 m."""
+        return isinstance(self.shape_a, Box) and isinstance(self.shape_b, (Box, Plane))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,6 +241,29 @@ def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
         parts.append(jnp.any(mask[start:start + count].reshape(len(g.pair_index), g.slots), axis=-1))
         start += count
     return parts
+
+
+def level_of_pairs(layout: Layout, gap: jax.Array, active: jax.Array) -> jax.Array | None:
+    """``(C,)`` metres: for each slot of a pair whose slots lie on one face (see
+    :attr:`_Group.levelled`), the least overlap (``-gap``, ``gap`` ``(C,)``) of its pair's
+    touching slots (``active`` ``(C,)`` with ``gap <= 0``); ``+inf`` for other pairs and for
+    pairs with no slot touching. ``None`` where no pair is levelled (a scene of spheres: its
+    step is then as it was)."""
+    if not any(g.levelled for g in layout.groups):
+        return None
+    overlap = -gap
+    touching = active & (overlap >= 0)
+    parts, start = [], 0
+    for g in layout.groups:
+        count = len(g.pair_index) * g.slots
+        if g.levelled:
+            rows = jnp.where(touching[start:start + count], overlap[start:start + count], jnp.inf)
+            least = jnp.min(rows.reshape(len(g.pair_index), g.slots), axis=-1, keepdims=True)
+            parts.append(jnp.broadcast_to(least, (len(g.pair_index), g.slots)).reshape(-1))
+        else:
+            parts.append(jnp.full((count,), jnp.inf, overlap.dtype))
+        start += count
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
 
 
 def with_pair_slots(layout: Layout, mask: jax.Array) -> jax.Array:
