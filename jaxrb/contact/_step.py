@@ -323,8 +323,9 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
                      jnp.zeros_like(lam0), settings.position_iterations, normal_only=True,
                      tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)[0]
 
-    # Skipped where nothing is deeper than the slop (an impact from flight, most resting
-    # contacts): with no slot to push, the solve returns the bodies at rest, exactly.
+    # Skipped where nothing is deeper than the slop or uneven beyond the level tolerance (an
+    # impact from flight, most resting contacts): with no slot to push, the solve returns
+    # the bodies at rest, exactly.
     pseudo = branch(jnp.any(push), correct, lambda b: b, still, recompute_in_reverse=True, saved=SAVE_NAMED)
     end = _drift_kick(ctx, params, state, velocity, momentum, velocity + pseudo.velocity[: scene.num_bodies], h,
                       derived, turn=h * pseudo.angular_velocity[: scene.num_bodies])
