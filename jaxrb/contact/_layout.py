@@ -62,12 +62,16 @@ class _Group:
     @property
     def levelled(self) -> bool:
         """Whether the split impulse levels each pair's slots (``ContactSettings.correction_slop``):
-        box-box and box-plane pairs, whose slots of one contact are the corners of a face on
-        a face, or clipped to one. Not curved shapes: the slots of a can standing off centre
-        on another overhang its cap's rim, and levelled they turned it back and forth every
-        step (the split impulse moves bodies without friction), and the top can of a
-        tower crept 6e-5 m in 0.6 s instead of 3e-6 m."""
-        return isinstance(self.shape_a, Box) and isinstance(self.shape_b, (Box, Plane))
+        box-box pairs, whose slots of one contact are the corners of a face on a face, or
+        clipped to one, and a box, cylinder or capsule on the ground, whose slots all lie on
+        the plane (a can on its cap, or on its side, a capsule lying down). Not a curved
+        shape on another body: the slots of a can standing off centre on another overhang
+        its cap's rim, and levelled they turned it back and forth every step (the split
+        impulse moves bodies without friction), and the top can of a tower crept 6e-5 m in
+        0.6 s instead of 3e-6 m."""
+        if isinstance(self.shape_b, Plane):
+            return isinstance(self.shape_a, (Box, Cylinder, Capsule))
+        return isinstance(self.shape_a, Box) and isinstance(self.shape_b, Box)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,20 +249,26 @@ def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
 
 def level_of_pairs(layout: Layout, gap: jax.Array, active: jax.Array) -> jax.Array | None:
     """``(C,)`` metres: for each slot of a pair whose slots lie on one face (see
-    :attr:`_Group.levelled`), the least overlap (``-gap``, ``gap`` ``(C,)``) of its pair's
-    touching slots (``active`` ``(C,)`` with ``gap <= 0``); ``+inf`` for other pairs and for
-    pairs with no slot touching. ``None`` where no pair is levelled (a scene of spheres: its
-    step is then as it was)."""
+    :attr:`_Group.levelled`) and which rests on all of them, the least overlap (``-gap``,
+    ``gap`` ``(C,)``) of its pair's slots; ``+inf`` for other pairs, for pairs with no active
+    slot (``active`` ``(C,)``), and for pairs with an active slot apart (``gap > 0``).
+
+    Only a pair touching at every active slot is levelled. A can rocking on its rim (tilted
+    7e-3 rad) reaches the ground with the rim point beside its deepest one only by sinking
+    0.25 mm at the deepest: levelled to that neighbour, it was lifted by 0.09 mm in one step
+    and gained 8.5e-4 J. A body that rests on some of its slots and not on others is
+    tilted by more than its overlaps, and its own dynamics, not the correction, lay it
+    down. ``None`` where no pair is levelled (a scene of spheres: its step is then as it
+    was)."""
     if not any(g.levelled for g in layout.groups):
         return None
-    overlap = -gap
-    touching = active & (overlap >= 0)
+    overlap = jnp.where(active, -gap, jnp.inf)
     parts, start = [], 0
     for g in layout.groups:
         count = len(g.pair_index) * g.slots
         if g.levelled:
-            rows = jnp.where(touching[start:start + count], overlap[start:start + count], jnp.inf)
-            least = jnp.min(rows.reshape(len(g.pair_index), g.slots), axis=-1, keepdims=True)
+            least = jnp.min(overlap[start:start + count].reshape(len(g.pair_index), g.slots), axis=-1, keepdims=True)
+            least = jnp.where(least >= 0, least, jnp.inf)
             parts.append(jnp.broadcast_to(least, (len(g.pair_index), g.slots)).reshape(-1))
         else:
             parts.append(jnp.full((count,), jnp.inf, overlap.dtype))

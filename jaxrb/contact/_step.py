@@ -300,14 +300,16 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # run time, with the same gradient to the last digit. Its solution is not saved by
     # name (see _solver._pgs_jvp): reverse mode runs these few sweeps again.
     #
-    # Box-box and box-plane pairs are levelled as well: below the slop, a slot's overlap
-    # beyond the shallowest of its pair's touching slots is removed. A resting box tilted on
-    # its face (by the unconverged sweeps of a stack's first steps) overlaps more at some
-    # corners than at others, all under the slop, and nothing else restores it: its face
-    # normal leans, and, frictionless, a 100 kg box on a 1 kg one pushed the light box 0.16 m
-    # sideways in 2 s on a tilt of 1.4e-4 rad (levelled: 3.2 mm, from the first steps'
-    # transient; benchmarks/README.md, stop 77). Differences under the level tolerance are
-    # left, so that a settled stack's rounding does not run the correction every step.
+    # Box-box pairs and boxes, cans and capsules on the ground are levelled as well (see
+    # _layout._Group.levelled) where they touch at every active slot: below the slop, a
+    # slot's overlap beyond the shallowest of its pair's slots is removed. A resting box
+    # tilted on its face (by the unconverged sweeps of a stack's first steps) overlaps more
+    # at some corners than at others, all under the slop, and nothing else restores it:
+    # its face normal leans, and, frictionless, a 100 kg box on a 1 kg one pushed the light
+    # box 0.16 m sideways in 2 s on a tilt of 1.4e-4 rad (levelled: 3.2 mm, from the first
+    # steps' transient; benchmarks/README.md, stop 77). Differences under the level
+    # tolerance are left, so that a settled stack's rounding does not run the correction
+    # every step.
     depth = jnp.maximum(-gap - settings.correction_slop, 0.0)
     level = level_of_pairs(layout, gap, contact.active)
     if level is not None:
