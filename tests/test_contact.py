@@ -1835,8 +1835,9 @@ def test_a_frictionless_heavy_box_on_a_light_one_stays_put_under_pgs():
     sideways. The first steps' unconverged sweeps tilt the boxes (1.4e-4 rad), by overlaps
     under ``correction_slop``; before each pair was levelled (``correction_slop``), that tilt
     stayed, and the leaning face normal pushed the light box 5.6 mm (17.9:1) and 0.16 m
-    (100:1) sideways in 2 s. Measured levelled: 0.012 and 3.2 mm, from the first steps'
-    transient (the tilt is down to 1e-8 rad by 500 steps)."""
+    (100:1) sideways in 2 s. Measured levelled: 0.012 and 2.1 mm (3.2 mm when every
+    touching slot was levelled), from the first steps' transient (the tilt is down to
+    1e-8 rad by 500 steps)."""
     scene = rb.Scene([rb.Body("light", shape=rb.Box((0.2, 0.2, 0.1)), mass=1.0),
                       rb.Body("heavy", shape=rb.Box((0.1, 0.15, 0.05)), mass=1.0)],
                      ground=rb.Plane(), contacts=[("light", "ground"), ("heavy", "light")])
@@ -1941,8 +1942,8 @@ def test_a_body_resting_tilted_on_the_ground_is_levelled(name, dtype):
     horizontal axis so that their low slots are 2.1e-5 m deep and the high ones 1e-6 m
     (1.1e-5 m the can's), all under ``correction_slop``: within 10 steps the split impulse turns them flat,
     to the level tolerance (1 nm in float64, the float32 skin 1.9e-6 m) across the slots'
-    span. Measured: box 2.6e-10 / 4.0e-6 rad (float64 / float32), can 1e-8 (the
-    arccosine's resolution) / 1.4e-5, capsule 2.4e-10 / 3.5e-6. Before pairs were levelled,
+    span. Measured: box 2.6e-10 / 4.0e-6 rad (float64 / float32), can 6.4e-9 / 1.4e-5,
+    capsule 2.4e-10 / 4.0e-6. Before pairs were levelled,
     each stayed at 1e-4 rad: the resting solve holds every slot, and the slop left the
     overlaps alone. Frictionless, and turned where they stood."""
     shape, height, span, flat, axis = _LYING[name]
