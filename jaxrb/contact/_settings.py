@@ -129,7 +129,7 @@ class ContactSettings:
             skin, and :data:`LEVEL_TOLERANCE`). So a box resting tilted on its face, as
             the first sweeps of a heavy-on-light stack leave it, is turned flat: left
             tilted by 1.4e-4 rad, its leaning face normal pushed a frictionless 1 kg box
-            under a 100 kg one 0.16 m sideways in 2 s (levelled: 3.2 mm); a can left
+            under a 100 kg one 0.16 m sideways in 2 s (levelled: 2.1 mm); a can left
             tilted on its cap stayed so. A body resting on some of its slots and apart at
             others (a can rocking on its rim) is left to its dynamics, and a curved shape
             on another body is not levelled (see

@@ -306,8 +306,8 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # tilted on its face (by the unconverged sweeps of a stack's first steps) overlaps more
     # at some corners than at others, all under the slop, and nothing else restores it:
     # its face normal leans, and, frictionless, a 100 kg box on a 1 kg one pushed the light
-    # box 0.16 m sideways in 2 s on a tilt of 1.4e-4 rad (levelled: 3.2 mm, from the first
-    # steps' transient; benchmarks/README.md, stop 77). Differences under the level
+    # box 0.16 m sideways in 2 s on a tilt of 1.4e-4 rad (levelled: 2.1 mm, from the first
+    # steps' transient; benchmarks/README.md, stops 77 and 78). Differences under the level
     # tolerance are left, so that a settled stack's rounding does not run the correction
     # every step.
     depth = jnp.maximum(-gap - settings.correction_slop, 0.0)
