@@ -123,16 +123,15 @@ class ContactSettings:
             stack drifted 2.5 cm in 2 s (6e-5 m with the correction idle) and the 100:1
             stack fell through (``position_iterations``: 8). Deeper overlaps (bodies
             started overlapping, or driven in) are removed down to it. Within the slop,
-            box-box pairs, and boxes, cylinders and capsules on the ground, are levelled
-            where they touch at every active slot: a slot's overlap beyond the
-            shallowest of its pair's slots is removed (where the difference exceeds the
-            skin, and :data:`LEVEL_TOLERANCE`). So a box resting tilted on its face, as
+            every pair of several slots (all but the sphere pairs) is levelled where it
+            touches at every active slot: a slot's overlap beyond the shallowest of its
+            pair's slots is removed (where the difference exceeds the skin, and
+            :data:`LEVEL_TOLERANCE`). So a box resting tilted on its face, as
             the first sweeps of a heavy-on-light stack leave it, is turned flat: left
             tilted by 1.4e-4 rad, its leaning face normal pushed a frictionless 1 kg box
             under a 100 kg one 0.16 m sideways in 2 s (levelled: 2.1 mm); a can left
-            tilted on its cap stayed so. A body resting on some of its slots and apart at
-            others (a can rocking on its rim) is left to its dynamics, and a curved shape
-            on another body is not levelled (see
+            tilted on its cap, or on a box, stayed so. A body resting on some of its slots
+            and apart at others (a can rocking on its rim) is left to its dynamics (see
             ``jaxrb.contact._layout._Group.levelled``).
     """
 

@@ -300,7 +300,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # run time, with the same gradient to the last digit. Its solution is not saved by
     # name (see _solver._pgs_jvp): reverse mode runs these few sweeps again.
     #
-    # Box-box pairs and boxes, cans and capsules on the ground are levelled as well (see
+    # Pairs of several slots (all but the sphere pairs) are levelled as well (see
     # _layout._Group.levelled) where they touch at every active slot: below the slop, a
     # slot's overlap beyond the shallowest of its pair's slots is removed. A resting box
     # tilted on its face (by the unconverged sweeps of a stack's first steps) overlaps more
