@@ -234,16 +234,34 @@ def _pair_colours(body_a, body_b, pair, num_bodies) -> tuple:
     return tuple(tuple(tuple(padded_slots[i]) for i in c) + ((pad,) * depth,) * (width - len(c)) for c in colours)
 
 
-def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
-    """Per group, whether each of its pairs has a slot in ``mask`` ``(C,)``: ``(P_g,)`` bool.
-
-    Each group's slots are its pairs' ``K`` slots in a row (static slices, a reshape)."""
-    parts, start = [], 0
+def _pair_blocks(layout: Layout, per_slot: jax.Array) -> list[jax.Array]:
+    """Per group, its slots' entries of ``per_slot`` ``(C, ...)`` as one ``(P_g, K, ...)``
+    block: each group's slots are its pairs' ``K`` slots in a row, so these are static
+    slices and reshapes, not gathers. The per-pair reductions below all read slots so."""
+    blocks, start = [], 0
     for g in layout.groups:
         count = len(g.pair_index) * g.slots
-        parts.append(jnp.any(mask[start:start + count].reshape(len(g.pair_index), g.slots), axis=-1))
+        blocks.append(per_slot[start:start + count].reshape(len(g.pair_index), g.slots, *per_slot.shape[1:]))
         start += count
-    return parts
+    return blocks
+
+
+def _spread(g: _Group, per_pair: jax.Array) -> jax.Array:
+    """A group's per-pair rows ``(P_g, ...)`` on its slots ``(P_g K, ...)``: each row
+    repeated over its pair's ``K`` slots (a broadcast)."""
+    rows = per_pair.shape[0]
+    return jnp.broadcast_to(per_pair[:, None], (rows, g.slots, *per_pair.shape[1:])).reshape(
+        rows * g.slots, *per_pair.shape[1:])
+
+
+def _joined(parts: list[jax.Array]) -> jax.Array:
+    """The groups' slot arrays as one ``(C, ...)``, in slot order."""
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+
+
+def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
+    """Per group, whether each of its pairs has a slot in ``mask`` ``(C,)``: ``(P_g,)`` bool."""
+    return [jnp.any(block, axis=-1) for block in _pair_blocks(layout, mask)]
 
 
 def level_of_pairs(layout: Layout, gap: jax.Array, active: jax.Array) -> jax.Array | None:
@@ -262,24 +280,19 @@ def level_of_pairs(layout: Layout, gap: jax.Array, active: jax.Array) -> jax.Arr
     if not any(g.levelled for g in layout.groups):
         return None
     overlap = jnp.where(active, -gap, jnp.inf)
-    parts, start = [], 0
-    for g in layout.groups:
-        count = len(g.pair_index) * g.slots
+    parts = []
+    for g, block in zip(layout.groups, _pair_blocks(layout, overlap), strict=True):
         if g.levelled:
-            least = jnp.min(overlap[start:start + count].reshape(len(g.pair_index), g.slots), axis=-1, keepdims=True)
-            least = jnp.where(least >= 0, least, jnp.inf)
-            parts.append(jnp.broadcast_to(least, (len(g.pair_index), g.slots)).reshape(-1))
+            least = jnp.min(block, axis=-1)
+            parts.append(_spread(g, jnp.where(least >= 0, least, jnp.inf)))
         else:
-            parts.append(jnp.full((count,), jnp.inf, overlap.dtype))
-        start += count
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+            parts.append(jnp.full((block.size,), jnp.inf, overlap.dtype))
+    return _joined(parts)
 
 
 def with_pair_slots(layout: Layout, mask: jax.Array) -> jax.Array:
     """``(C,)`` bool: the slots of every pair that has a slot in ``mask`` ``(C,)``."""
-    parts = [jnp.broadcast_to(rows[:, None], (rows.shape[0], g.slots)).reshape(-1)
-             for g, rows in zip(layout.groups, _any_per_pair(layout, mask), strict=True)]
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+    return _joined([_spread(g, rows) for g, rows in zip(layout.groups, _any_per_pair(layout, mask), strict=True)])
 
 
 def bodies_with_slots(layout: Layout, mask: jax.Array) -> jax.Array:
@@ -304,12 +317,7 @@ def slot_values(layout: Layout, per_pair: jax.Array) -> jax.Array:
     for the 5-box stack) made a slice and a broadcast per run: 15 kernels an array, at
     every contact step.
     """
-    parts = []
-    for g in layout.groups:
-        rows = take_rows(per_pair, g.pair_index)
-        parts.append(jnp.broadcast_to(rows[:, None], (rows.shape[0], g.slots, *rows.shape[1:]))
-                     .reshape(rows.shape[0] * g.slots, *rows.shape[1:]))
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+    return _joined([_spread(g, take_rows(per_pair, g.pair_index)) for g in layout.groups])
 
 
 def _shape_poses(scene: Scene, state: State):
