@@ -25,8 +25,10 @@ Energy. Every update of the resting solve is chosen so that it cannot add kineti
 an impulse ``dP`` changes it by ``u . dP + dP.K dP / 2``. A normal push is capped at
 ``2|u_n|/K_nn`` (the elastic bound; without it, friction that has already slowed the
 approach would let Newton's law add energy, Kane's paradox), and a friction update is a
-projected-gradient step of length ``1/k_max``, which only descends. (The split impulse's
-solve, ``normal_only=True``, has no cap: its pseudo-velocities move only positions.) An
+projected-gradient step of length ``1/k_max``, which only descends; the warm start,
+applied before the sweeps, is scaled by the step so that it adds none either
+(``_step._warm_start_within_energy``). (The split impulse's solve, ``normal_only=True``,
+has no cap: its pseudo-velocities move only positions.) An
 impact (:func:`collisions`) gives back in restitution at most the energy its compression
 took, and its friction only takes energy, so no impact with ``e <= 1`` creates energy,
 whatever the iteration count.

@@ -69,6 +69,7 @@ from ..forces import Gravity
 from ..scene import Scene
 from ..shapes import Box, Capsule, Cylinder, Sphere
 from ..state import Params, State, angular_velocity, inverse_world_inertia, world_inertia
+from ._coulomb import fraction_within
 from ._layout import (
     Layout,
     bodies_with_slots,
@@ -168,8 +169,37 @@ def _slot_coefficients(ctx: _Ctx, params: Params):
     return slot_values(layout, params.restitution), slot_values(layout, params.friction)
 
 
+def _warm_start_within_energy(bodies: Bodies, f: Frames, lam0: jax.Array) -> jax.Array:
+    """The warm start ``lam0`` ``(C, 3)`` (slot bases, N s) scaled by the largest ``theta``
+    in ``[0, 1]`` whose impulses add no kinetic energy to ``bodies``.
+
+    Impulses ``P`` (world frame, at the slots) change the kinetic energy by
+    ``sum_k P_k . u_k + sum_bodies (|dp|^2 / m + dl . I^-1 dl) / 2``, with ``u_k`` the
+    slots' relative velocities and ``dp``, ``dl`` each body's net impulse and angular
+    impulse; every update of the sweeps is bounded so (``_solver``), but the warm start,
+    applied before them, was not. A warm start larger than the step needs (the impulse
+    that stopped a landing, kept for the next step) pushes the bodies apart, and sweeps
+    that stop early leave part of that push: with ``iterations=1`` a box landing flat at
+    0.13 m/s with e = 0 came back up at 0.018 m/s and gained 3.6e-4 J in one step. A
+    resting contact's warm start (last step's impulses, which stop this step's approach)
+    takes energy and is kept whole."""
+    a, b = f.body_a[:-1], f.body_b[:-1]
+    impulse = spatial.matvec(spatial.transpose(f.basis[:-1]), lam0)
+    r_a, r_b = f.r_a[:-1], f.r_b[:-1]
+    v, w = bodies.velocity, bodies.angular_velocity
+    u = (v[a] + spatial.cross(w[a], r_a)) - (v[b] + spatial.cross(w[b], r_b))
+    dp = jnp.zeros_like(v).at[a].add(impulse).at[b].add(-impulse)
+    dl = jnp.zeros_like(w).at[a].add(spatial.cross(r_a, impulse)).at[b].add(-spatial.cross(r_b, impulse))
+    linear = jnp.sum(impulse * u)
+    quadratic = 0.5 * (jnp.sum(bodies.inv_mass[:, None] * dp * dp)
+                       + jnp.sum(dl * spatial.matvec(bodies.inv_inertia, dl)))
+    return fraction_within(linear, quadratic, jnp.zeros_like(linear)) * lam0
+
+
 def _run_solver(settings: ContactSettings, layout: Layout, bodies, f, target, mu, active, lam0):
     colours = literal_array(layout.colours)
+    if settings.warm_start:
+        lam0 = _warm_start_within_energy(bodies, f, lam0 * active[:, None])
     if settings.solver == "exact":
         return solve_exact(bodies, f, colours, target, mu, active, lam0,
                            settings.iterations, settings.newton_iterations)
