@@ -162,6 +162,9 @@ def frames(bodies: Bodies, body_a, body_b, point, normal, position) -> Frames:
 
 
 def relative_velocity(bodies: Bodies, f: Frames, idx):
+    """The slots ``idx``' relative velocities ``(..., 3)`` (m/s) in their bases ``(n, t1,
+    t2)``. ``idx`` is an index array, or a Python ``slice`` where the slots are a range: a
+    slice reads the frames as they are, where ``jnp.arange`` would gather each field."""
     a, b = f.body_a[idx], f.body_b[idx]
     ua = bodies.velocity[a] + spatial.cross(bodies.angular_velocity[a], f.r_a[idx])
     ub = bodies.velocity[b] + spatial.cross(bodies.angular_velocity[b], f.r_b[idx])
@@ -170,11 +173,12 @@ def relative_velocity(bodies: Bodies, f: Frames, idx):
 
 def normal_velocities(bodies: Bodies, f: Frames) -> Array:
     """``u_n`` (m/s) of every slot, padding included: ``(C + 1,)``."""
-    return relative_velocity(bodies, f, jnp.arange(f.body_a.shape[0]))[:, 0]
+    return relative_velocity(bodies, f, slice(None))[:, 0]
 
 
 def _apply(bodies: Bodies, f: Frames, idx, local_impulse) -> Bodies:
-    """Apply ``+P`` to A and ``-P`` to B of slots ``idx``; ``P`` given in the slot basis."""
+    """Apply ``+P`` to A and ``-P`` to B of slots ``idx`` (index array or ``slice``, as in
+    :func:`relative_velocity`); ``P`` given in the slot basis."""
     impulse = spatial.matvec(spatial.transpose(f.basis[idx]), local_impulse)
     a, b = f.body_a[idx], f.body_b[idx]
     dva = bodies.inv_mass[a][:, None] * impulse
@@ -188,8 +192,7 @@ def _apply(bodies: Bodies, f: Frames, idx, local_impulse) -> Bodies:
 
 def apply_impulses(bodies: Bodies, f: Frames, local_impulses) -> Bodies:
     """Apply every slot's impulse ``(C, 3)`` (slot basis) at once (e.g. a warm start)."""
-    c = local_impulses.shape[0]
-    return _apply(bodies, f, jnp.arange(c), local_impulses)
+    return _apply(bodies, f, slice(0, local_impulses.shape[0]), local_impulses)
 
 
 class _Colour(eqx.Module):

@@ -91,6 +91,7 @@ from ._solver import (
     collisions,
     frames,
     normal_velocities,
+    relative_velocity,
     solve,
 )
 
@@ -183,14 +184,13 @@ def _warm_start_within_energy(bodies: Bodies, f: Frames, lam0: jax.Array) -> jax
     0.13 m/s with e = 0 came back up at 0.018 m/s and gained 3.6e-4 J in one step. A
     resting contact's warm start (last step's impulses, which stop this step's approach)
     takes energy and is kept whole."""
-    a, b = f.body_a[:-1], f.body_b[:-1]
-    impulse = spatial.matvec(spatial.transpose(f.basis[:-1]), lam0)
-    r_a, r_b = f.r_a[:-1], f.r_b[:-1]
-    v, w = bodies.velocity, bodies.angular_velocity
-    u = (v[a] + spatial.cross(w[a], r_a)) - (v[b] + spatial.cross(w[b], r_b))
-    dp = jnp.zeros_like(v).at[a].add(impulse).at[b].add(-impulse)
-    dl = jnp.zeros_like(w).at[a].add(spatial.cross(r_a, impulse)).at[b].add(-spatial.cross(r_b, impulse))
-    linear = jnp.sum(impulse * u)
+    real = slice(None, -1)  # the frames' last slot is the padding one
+    a, b = f.body_a[real], f.body_b[real]
+    impulse = spatial.matvec(spatial.transpose(f.basis[real]), lam0)
+    r_a, r_b = f.r_a[real], f.r_b[real]
+    dp = jnp.zeros_like(bodies.velocity).at[a].add(impulse).at[b].add(-impulse)
+    dl = jnp.zeros_like(dp).at[a].add(spatial.cross(r_a, impulse)).at[b].add(-spatial.cross(r_b, impulse))
+    linear = jnp.sum(lam0 * relative_velocity(bodies, f, real))  # P . u, both in the slot bases
     quadratic = 0.5 * (jnp.sum(bodies.inv_mass[:, None] * dp * dp)
                        + jnp.sum(dl * spatial.matvec(bodies.inv_inertia, dl)))
     return fraction_within(linear, quadratic, jnp.zeros_like(linear)) * lam0
