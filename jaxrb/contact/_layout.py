@@ -255,8 +255,24 @@ def _spread(g: _Group, per_pair: jax.Array) -> jax.Array:
 
 
 def _joined(parts: list[jax.Array]) -> jax.Array:
-    """The groups' slot arrays as one ``(C, ...)``, in slot order."""
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+    """The groups' slot arrays as one ``(C, ...)``, in slot order.
+
+    Each part zero-padded to its place and the parts added (or-ed, for masks), not
+    concatenated: XLA:CPU's fusion emitters (jaxlib 0.10.1 and 0.10.2; its older emitters
+    do not) compiled a concatenation of ``_spread`` blocks of two different slot counts,
+    fused with its users, into a kernel that crashed the process (SIGSEGV) when it ran: a
+    sphere, a can and a capsule in a pen of four walls, at the first impact the step
+    located (``tests/test_contact.py::test_a_scene_whose_slot_layout_crashed_xla_cpu_runs``).
+    Every position holds one part's value plus zeros, so the values are the same (a
+    ``-0.0`` becomes ``+0.0``)."""
+    if len(parts) == 1:
+        return parts[0]
+    total, start, joined = sum(p.shape[0] for p in parts), 0, None
+    for part in parts:
+        placed = jnp.pad(part, [(start, total - start - part.shape[0])] + [(0, 0)] * (part.ndim - 1))
+        joined = placed if joined is None else (joined | placed if part.dtype == bool else joined + placed)
+        start += part.shape[0]
+    return joined
 
 
 def _any_per_pair(layout: Layout, mask: jax.Array) -> list[jax.Array]:
