@@ -76,6 +76,22 @@ def test_step_pieces_benchmark_quick(tmp_path):
     assert (tmp_path / "step_pieces.png").stat().st_size > 0
 
 
+def test_contact_fuzz_quick(tmp_path):
+    # In a fresh process on XLA's default flags, as users run (the suite compiles with the
+    # older fusion emitters, see conftest): stop 80's fuzz found a crash only the default
+    # emitters have.
+    env = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "fuzz_contacts.py"), "--quick", "--out",
+                          str(tmp_path)], capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-3000:]
+    (run,) = json.loads((tmp_path / "fuzz_contacts.json").read_text())["runs"]
+    assert run["composition"] == "sy" and run["pairs"] == 11 and run["cases"] == [0, 1]
+    assert run["non_finite_cases"] == [] and len(run["worst_step_gain_J"]) == 2
+    assert (tmp_path / "fuzz_contacts.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="letters of sbcy"):
+        load("fuzz_contacts").main(["--compositions", "sx", "--out", str(tmp_path)])
+
+
 @pytest.mark.slow
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
