@@ -153,6 +153,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true", help="tiny sizes, to a temp dir (CI)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
+    if args.only is not None and not all(0 <= k < args.cases for k in args.only):
+        raise ValueError(f"--only takes case numbers of the seed's {args.cases} cases (0 to {args.cases - 1}), "
+                         f"got {args.only}; raise --cases to reach later ones")
     if args.quick:
         args.compositions, args.cases, args.steps = "sy", 2, 20
     out = args.out or (Path(tempfile.mkdtemp()) if args.quick else DEFAULT_OUT)

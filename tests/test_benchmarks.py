@@ -90,6 +90,8 @@ def test_contact_fuzz_quick(tmp_path):
     assert (tmp_path / "fuzz_contacts.png").stat().st_size > 0
     with pytest.raises(ValueError, match="letters of sbcy"):
         load("fuzz_contacts").main(["--compositions", "sx", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="--only takes case numbers"):
+        load("fuzz_contacts").main(["--cases", "4", "--only", "4", "--out", str(tmp_path)])
 
 
 @pytest.mark.slow
