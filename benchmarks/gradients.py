@@ -21,6 +21,10 @@ What it measures
       then drops the attitude, which the heights do not need) and with the attitude kept
       (``0 *`` its sum added). Where the gradient's time goes: into the impacts, or into
       the free steps of a program that can collide.
+    * ``bounce_one_thread_pool``: the headline forward and gradient again, timed alike, in a
+      fresh interpreter whose XLA:CPU thread pool has one thread, as the peers' runs have
+      (``peers.single_thread_xla_pool``, their deadlock workaround): jaxrb's ratio beside
+      theirs measured the same way. The headline stays on the default pool.
     * ``free_body_long``: a tumbling box under gravity, h = 1 ms, ``--long-steps`` steps
       (default 1e5), the gradient of the final pose with respect to the inertia and the
       initial state, through ``rollout(..., checkpoint=True, save_every=k)`` with
@@ -115,7 +119,9 @@ def interleaved(programs: dict, rounds: int, block: int = 1) -> dict[str, np.nda
     return {name: np.asarray(t) for name, t in times.items()}
 
 
-def bounce(steps, repeats, dtype):
+def ball(steps, dtype):
+    """The bouncing ball: ``(scene, step, params, state, loss)``, the loss the sum of the
+    centre's heights over a ``steps``-step rollout."""
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
     params = scene.params(restitution=0.8, friction=0.5, dtype=dtype)
@@ -125,6 +131,42 @@ def bounce(steps, repeats, dtype):
     def loss(p, s):
         _, traj = rb.rollout(step, p, s, steps)
         return jnp.sum(traj.position[:, 0, 2])
+
+    return scene, step, params, state, loss
+
+
+def bounce_ratio(steps, dtype) -> dict:
+    """The headline figure alone: the ball's forward and gradient (as in :func:`bounce`),
+    timed hot in blocks as there. For :func:`bounce_in_one_thread_pool`."""
+    _, _, params, state, loss = ball(steps, dtype)
+    forward, _ = compiled(loss, params, state, name="the ball's forward rollout")
+    reverse, _ = compiled(jax.grad(loss, argnums=(0, 1)), params, state, name="its gradient")
+    times = interleaved({"forward": (forward, (params, state)), "reverse": (reverse, (params, state))},
+                        BOUNCE_ROUNDS, HOT_BLOCK)
+    t_fwd, t_rev = float(np.min(times["forward"])), float(np.min(times["reverse"]))
+    m_fwd, m_rev = float(np.median(times["forward"])), float(np.median(times["reverse"]))
+    return {"forward_s": t_fwd, "reverse_grad_s": t_rev, "ratio_reverse_over_forward": t_rev / t_fwd,
+            "median_ratio_reverse_over_forward": m_rev / m_fwd}
+
+
+def bounce_in_one_thread_pool(args) -> dict:
+    """:func:`bounce_ratio` in a new interpreter whose XLA:CPU pool has one thread, as the
+    peers' (``peers.single_thread_xla_pool``, their deadlock workaround): the ratio beside
+    theirs measured alike. On two cores the ball's reverse pass hands work to the pool's
+    other thread (benchmarks/README.md, stop 81), which costs it more than the forward."""
+    code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
+            f"pool = peers.single_thread_xla_pool(); import jax; "
+            f"jax.config.update('jax_enable_x64', {not args.float32!r}); import jax.numpy as jnp; "
+            f"import gradients as g; r = g.bounce_ratio({args.steps}, jnp.{'float32' if args.float32 else 'float64'}); "
+            f"r['xla_cpu_pool'] = pool; print('POOL_JSON' + json.dumps(r))")
+    result = json_from_python(sys.executable, code, "POOL_JSON")
+    if "error" in result:
+        raise RuntimeError(f"the one-thread-pool measurement failed:\n{result['error']}")
+    return result
+
+
+def bounce(steps, repeats, dtype):
+    scene, step, params, state, loss = ball(steps, dtype)
 
     def coefficients(x):
         return loss(params.replace(restitution=x[:1], friction=x[1:2], mass=x[2:3]), state)
@@ -287,6 +329,11 @@ def print_table(record):
               f"{c['forward_no_contacts_attitude_kept'] * 1e3:.3f} ms, gradient "
               f"{c['reverse_no_contacts_attitude_kept'] * 1e3:.3f} ms "
               f"(x{c['reverse_no_contacts_attitude_kept'] / c['forward_no_contacts_attitude_kept']:.2f})")
+    o = record.get("bounce_one_thread_pool")
+    if o:
+        print(f"  the same forward and gradient in a fresh process with a one-thread XLA pool "
+              f"({o['xla_cpu_pool']}, as the peers): {o['forward_s'] * 1e3:.2f} / {o['reverse_grad_s'] * 1e3:.2f} ms "
+              f"(x{o['ratio_reverse_over_forward']:.2f}; medians x{o['median_ratio_reverse_over_forward']:.2f})")
     f = record["free_body_long"]
     for name in ("checkpointed", "plain"):
         if name in f:
@@ -317,6 +364,9 @@ def plot(record, path):
 
     names, ratios = ["jaxrb reverse", "jaxrb jacfwd(3)"], [record["bounce"]["ratio_reverse_over_forward"],
                                                            record["bounce"]["ratio_jacfwd3_over_forward"]]
+    if "bounce_one_thread_pool" in record:
+        names.append("jaxrb reverse, one-thread pool")
+        ratios.append(record["bounce_one_thread_pool"]["ratio_reverse_over_forward"])
     for engine, r in record.get("peers", {}).items():
         if isinstance(r, dict) and "error" not in r and r.get("grad_finite"):
             ratio = r.get("grad_over_forward")
@@ -356,6 +406,8 @@ def main(argv=None):
         "dtype": str(jnp.dtype(dtype)),
     }
     record["bounce"] = bounce(args.steps, args.repeats, dtype)
+    progress("the ball's ratio again, in a fresh process with the peers' one-thread XLA pool")
+    record["bounce_one_thread_pool"] = bounce_in_one_thread_pool(args)
     progress(f"the free body's {args.long_steps}-step gradient, in a fresh process")
     record["free_body_long"] = long_in_fresh_process(args)
     if args.peer_python:

@@ -154,6 +154,9 @@ def test_gradients_benchmark_quick(tmp_path):
     assert set(split) == {f"{d}_{case}" for d in ("forward", "reverse") for case in cases}
     assert all(t > 0 for t in split.values())
     assert record["bounce"]["flight_state_gradient_max_abs_difference"] <= 1e-12
+    # The same ratio beside the peers', measured as they are: a one-thread XLA pool.
+    pool = record["bounce_one_thread_pool"]
+    assert pool["xla_cpu_pool"] == "one thread (deadlock workaround)" and pool["ratio_reverse_over_forward"] > 0
     long = record["free_body_long"]["checkpointed"]
     assert long["gradient_finite"] and long["xla_memory_bytes"] > 0
     assert json.loads((tmp_path / "gradients.json").read_text())["bounce"]["steps"] == 50
