@@ -22,7 +22,8 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 #: gradient tests took 16-37% less time in each of three pairs of runs side by side
 #: (2026-12-02, jaxlib 0.10.2, 2 cores; benchmarks/README.md, "The test suite's XLA flag",
 #: where single programs that it compiles more slowly are listed too). The programs are
-#: the same HLO, with no fast math in either emitter. jaxrb itself sets no flag. Set
+#: the same HLO, with no fast math in either emitter. jaxrb itself sets no flag; the
+#: notebooks' kernels and a few scripts the tests run are given XLA's defaults, as users run. Set
 #: JAXRB_TEST_XLA_DEFAULTS=1 to run the suite on XLA's defaults. A jaxlib that does not
 #: know the flag aborts every process given it, so it is tried first in a subprocess.
 _FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
