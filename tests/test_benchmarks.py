@@ -156,7 +156,9 @@ def test_gradients_benchmark_quick(tmp_path):
     assert record["bounce"]["flight_state_gradient_max_abs_difference"] <= 1e-12
     # The same ratio beside the peers', measured as they are: a one-thread XLA pool.
     pool = record["bounce_one_thread_pool"]
-    assert pool["xla_cpu_pool"] == "one thread (deadlock workaround)" and pool["ratio_reverse_over_forward"] > 0
+    # (Where the OS cannot pin a process to one CPU, peers.py keeps the default pool and says so.)
+    expected = "one thread" if hasattr(os, "sched_setaffinity") else "default ("
+    assert pool["xla_cpu_pool"].startswith(expected) and pool["ratio_reverse_over_forward"] > 0
     long = record["free_body_long"]["checkpointed"]
     assert long["gradient_finite"] and long["xla_memory_bytes"] > 0
     assert json.loads((tmp_path / "gradients.json").read_text())["bounce"]["steps"] == 50
