@@ -135,9 +135,10 @@ def ball(steps, dtype):
     return scene, step, params, state, loss
 
 
-def bounce_ratio(steps, dtype) -> dict:
+def bounce_ratio(steps, dtype, xla_cpu_pool: str) -> dict:
     """The headline figure alone: the ball's forward and gradient (as in :func:`bounce`),
-    timed hot in blocks as there. For :func:`bounce_in_one_thread_pool`."""
+    timed hot in blocks as there, in a process whose XLA:CPU pool ``xla_cpu_pool`` says
+    (recorded). For :func:`bounce_in_one_thread_pool`."""
     _, _, params, state, loss = ball(steps, dtype)
     forward, _ = compiled(loss, params, state, name="the ball's forward rollout")
     reverse, _ = compiled(jax.grad(loss, argnums=(0, 1)), params, state, name="its gradient")
@@ -146,7 +147,7 @@ def bounce_ratio(steps, dtype) -> dict:
     t_fwd, t_rev = float(np.min(times["forward"])), float(np.min(times["reverse"]))
     m_fwd, m_rev = float(np.median(times["forward"])), float(np.median(times["reverse"]))
     return {"forward_s": t_fwd, "reverse_grad_s": t_rev, "ratio_reverse_over_forward": t_rev / t_fwd,
-            "median_ratio_reverse_over_forward": m_rev / m_fwd}
+            "median_ratio_reverse_over_forward": m_rev / m_fwd, "xla_cpu_pool": xla_cpu_pool}
 
 
 def bounce_in_one_thread_pool(args) -> dict:
@@ -154,15 +155,8 @@ def bounce_in_one_thread_pool(args) -> dict:
     peers' (``peers.single_thread_xla_pool``, their deadlock workaround): the ratio beside
     theirs measured alike. On two cores the ball's reverse pass hands work to the pool's
     other thread (benchmarks/README.md, stop 81), which costs it more than the forward."""
-    code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import peers; "
-            f"pool = peers.single_thread_xla_pool(); import jax; "
-            f"jax.config.update('jax_enable_x64', {not args.float32!r}); import jax.numpy as jnp; "
-            f"import gradients as g; r = g.bounce_ratio({args.steps}, jnp.{'float32' if args.float32 else 'float64'}); "
-            f"r['xla_cpu_pool'] = pool; print('POOL_JSON' + json.dumps(r))")
-    result = json_from_python(sys.executable, code, "POOL_JSON")
-    if "error" in result:
-        raise RuntimeError(f"the one-thread-pool measurement failed:\n{result['error']}")
-    return result
+    return in_fresh_process(args, f"bounce_ratio({args.steps}, dtype, pool)", "the one-thread-pool measurement",
+                            first="import peers; pool = peers.single_thread_xla_pool(); ")
 
 
 def bounce(steps, repeats, dtype):
@@ -285,13 +279,21 @@ def free_body_long(steps, repeats, dtype, plain_too: bool):
 
 def long_in_fresh_process(args):
     """``free_body_long`` in a new interpreter, so that its peak RSS is its own."""
-    code = (f"import json, sys, jax; sys.path.insert(0, {str(HERE)!r}); "
+    return in_fresh_process(args, f"free_body_long({args.long_steps}, {args.repeats}, dtype, {not args.no_plain!r})",
+                            "the long-rollout measurement")
+
+
+def in_fresh_process(args, call: str, what: str, first: str = "") -> dict:
+    """``gradients.<call>`` (an expression in which ``dtype`` is the run's dtype) evaluated in
+    a new interpreter, after the statements ``first`` (run before JAX starts); its result,
+    a JSON-able dict."""
+    code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); {first}import jax; "
             f"jax.config.update('jax_enable_x64', {not args.float32!r}); import jax.numpy as jnp; "
-            f"import gradients as g; print('LONG_JSON' + json.dumps(g.free_body_long({args.long_steps}, "
-            f"{args.repeats}, jnp.{'float32' if args.float32 else 'float64'}, {not args.no_plain!r})))")
-    result = json_from_python(sys.executable, code, "LONG_JSON")
+            f"dtype = jnp.{'float32' if args.float32 else 'float64'}; import gradients as g; "
+            f"print('RESULT_JSON' + json.dumps(g.{call}))")
+    result = json_from_python(sys.executable, code, "RESULT_JSON")
     if "error" in result:
-        raise RuntimeError(f"the long-rollout measurement failed:\n{result['error']}")
+        raise RuntimeError(f"{what} failed:\n{result['error']}")
     return result
 
 
