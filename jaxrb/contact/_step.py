@@ -737,7 +737,6 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     held = _held_slots(state)
     if candidate is None:
         return _rematerialised(ctx, params, state, jnp.asarray(dt, state.position.dtype), lam0, derived, held)
-    flight = _free_flight(ctx, params, state)
 
     # Split the step at the impacts: [0, tau_1 h], [tau_1 h, tau_2 h], ..., [tau_M h, h], each
     # part after the first starting with its impact (the sub-step's impact pass: the pair
@@ -746,7 +745,24 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     # ensemble, when every member's is). At tau = 1 the impact is the next step's, at its
     # start. Impacts after the last located one are handled at its instant (speculatively).
     any_hit = jnp.any(candidate)
-    taus, ahead = _split_points(ctx, state, flight, start_sep, end_sep, candidate)
+    located = _located_impacts(ctx)
+
+    def search(p, s):
+        return _split_points(ctx, s, _free_flight(ctx, p, s), start_sep, end_sep, candidate)
+
+    if located == 1:
+        taus, ahead = search(params, state)
+    else:
+        # Where no pair closes (every step of a resting stack) the searches' loop would skip
+        # each search and return tau = 1: the constants, without the loop and the free flight
+        # it starts from. Not where one impact is located: there is no loop, and the branch
+        # made XLA:CPU hand a sliding box's steps to its thread pool 5 times a step (0.01
+        # before; benchmarks/README.md, stop 82).
+        def nothing_located(p, s):
+            taus = jnp.concatenate([jnp.zeros((1,), s.position.dtype), jnp.ones((located + 1,), s.position.dtype)])
+            return taus, jnp.zeros((located + 1, candidate.shape[0]), bool)
+
+        taus, ahead = branch(any_hit, search, nothing_located, params, state)
     lengths = (taus[1:] - taus[:-1]) * dt
 
     # The part before the impact is free flight where no pair touches at the step's start:
