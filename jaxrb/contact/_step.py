@@ -745,24 +745,7 @@ def _contact_step(ctx: _Ctx, params: Params, state: State, derived, start_sep, e
     # ensemble, when every member's is). At tau = 1 the impact is the next step's, at its
     # start. Impacts after the last located one are handled at its instant (speculatively).
     any_hit = jnp.any(candidate)
-    located = _located_impacts(ctx)
-
-    def search(p, s):
-        return _split_points(ctx, s, _free_flight(ctx, p, s), start_sep, end_sep, candidate)
-
-    if located == 1:
-        taus, ahead = search(params, state)
-    else:
-        # Where no pair closes (every step of a resting stack) the searches' loop would skip
-        # each search and return tau = 1: the constants, without the loop and the free flight
-        # it starts from. Not where one impact is located: there is no loop, and the branch
-        # made XLA:CPU hand a sliding box's steps to its thread pool 5 times a step (0.01
-        # before; benchmarks/README.md, stop 82).
-        def nothing_located(p, s):
-            taus = jnp.concatenate([jnp.zeros((1,), s.position.dtype), jnp.ones((located + 1,), s.position.dtype)])
-            return taus, jnp.zeros((located + 1, candidate.shape[0]), bool)
-
-        taus, ahead = branch(any_hit, search, nothing_located, params, state)
+    taus, ahead = _split_points(ctx, params, state, start_sep, end_sep, candidate)
     lengths = (taus[1:] - taus[:-1]) * dt
 
     # The part before the impact is free flight where no pair touches at the step's start:
@@ -850,7 +833,7 @@ def _located_impacts(ctx: _Ctx) -> int:
     return ctx.settings.located_impacts if apart else 1
 
 
-def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate):
+def _split_points(ctx: _Ctx, params: Params, state: State, start_sep, end_sep, candidate):
     """The instants that split a step: ``taus`` ``(M + 2,)`` (fractions of the step, from 0
     to 1, non-decreasing; ``M`` = :func:`_located_impacts`), and for each of the ``M + 1``
     parts the pairs ``(M + 1, P)`` apart at its start whose impact is located at its end,
@@ -866,49 +849,67 @@ def _split_points(ctx: _Ctx, state: State, flight, start_sep, end_sep, candidate
     elsewhere; a body's second impact after its first is not, nor an impact onto a body
     touching one struck before it in the step: those are handled as before, at the start
     of the part after the last located impact.
+
+    The searches run along :func:`_free_flight` from ``state`` (under ``params``). Where
+    several impacts can be located and no pair closes (every step of a resting stack), the
+    searches' loop and that flight are skipped by a ``branch``: each search would be skipped
+    and return tau = 1, so the result is its constants.
     """
     dtype = state.position.dtype
     slop = ctx.settings.penetration_slop
     one = jnp.ones((), dtype)
     no_pairs = jnp.zeros_like(candidate)
-
-    def choose(k, struck):
-        def pairs(gaps):
-            if isinstance(k, int):  # the first search alone (no loop)
-                return candidate
-            later = (gaps > slop) & (end_sep < 0) & ~_moved_by_impacts(ctx, gaps <= slop, struck)
-            return jnp.where(k == 0, candidate, later)
-        return pairs
-
-    def locate(begin, struck, k):
-        # The first search's pairs and the separations it opens with are the branch test's;
-        # the later ones' are computed at the instant they start from.
-        # Checkpointed (here and for the impacts): a cond's linearisation zero-fills the
-        # residuals of the branch not taken, copied at every step; a checkpoint's are its inputs.
-        search = jax.checkpoint(
-            lambda: _time_of_impact(ctx, state, flight, end_sep, begin, choose(k, struck), start_sep, k == 0),
-            policy=SAVE_NAMED)
-        return search()
-
-    def split(carry, k):
-        # One search in the compiled step, however many impacts are located. The first
-        # searches where a candidate closes; a later one opens where the last ended inside
-        # the step. ``struck``: the pairs located so far.
-        begin, struck = carry
-        # (``k`` is captured, not an operand: a Python 0 where no loop runs, so that the
-        # program then holds the first search's choice alone.)
-        tau, pairs = branch(jnp.where(k == 0, jnp.any(candidate), begin < 1),
-                            lambda b, s: locate(b, s, k), lambda *_: (one, no_pairs), begin, struck)
-        tau = jnp.maximum(tau, begin)
-        found = pairs & (tau < 1)
-        return (tau, struck | found), (tau, found)
-
-    zero = jnp.zeros((), dtype)
     located = _located_impacts(ctx)
-    if located == 1:  # no loop, and no search after the first in the program
-        _, (tau, ahead) = split((zero, no_pairs), 0)
-        taus, ahead = tau[None], ahead[None]
-    else:
+
+    def search(params, state):
+        flight = _free_flight(ctx, params, state)
+
+        def choose(k, struck):
+            def pairs(gaps):
+                if isinstance(k, int):  # the first search alone (no loop)
+                    return candidate
+                later = (gaps > slop) & (end_sep < 0) & ~_moved_by_impacts(ctx, gaps <= slop, struck)
+                return jnp.where(k == 0, candidate, later)
+            return pairs
+
+        def locate(begin, struck, k):
+            # The first search's pairs and the separations it opens with are the branch
+            # test's; the later ones' are computed at the instant they start from.
+            # Checkpointed (here and for the impacts): a cond's linearisation zero-fills the
+            # residuals of the branch not taken, copied at every step; a checkpoint's are its
+            # inputs.
+            return jax.checkpoint(
+                lambda: _time_of_impact(ctx, state, flight, end_sep, begin, choose(k, struck), start_sep, k == 0),
+                policy=SAVE_NAMED)()
+
+        def split(carry, k):
+            # One search in the compiled step, however many impacts are located. The first
+            # searches where a candidate closes; a later one opens where the last ended
+            # inside the step. ``struck``: the pairs located so far.
+            begin, struck = carry
+            # (``k`` is captured, not an operand: a Python 0 where no loop runs, so that the
+            # program then holds the first search's choice alone.)
+            tau, pairs = branch(jnp.where(k == 0, jnp.any(candidate), begin < 1),
+                                lambda b, s: locate(b, s, k), lambda *_: (one, no_pairs), begin, struck)
+            tau = jnp.maximum(tau, begin)
+            found = pairs & (tau < 1)
+            return (tau, struck | found), (tau, found)
+
+        zero = jnp.zeros((), dtype)
+        if located == 1:  # no loop, and no search after the first in the program
+            _, (tau, ahead) = split((zero, no_pairs), 0)
+            return tau[None], ahead[None]
         _, (taus, ahead) = jax.lax.scan(split, (zero, no_pairs), jnp.arange(located))
+        return taus, ahead
+
+    if located == 1:
+        taus, ahead = search(params, state)
+    else:
+        # Not where one impact is located: there is no loop to skip, and the branch made
+        # XLA:CPU hand a sliding box's steps to its thread pool 5 times a step (0.01 before;
+        # benchmarks/README.md, stop 82).
+        taus, ahead = branch(jnp.any(candidate), search,
+                             lambda *_: (jnp.ones((located,), dtype), jnp.zeros((located, *no_pairs.shape), bool)),
+                             params, state)
     return (jnp.concatenate([jnp.zeros((1,), dtype), taus, one[None]]),
             jnp.concatenate([ahead, no_pairs[None]]))

@@ -42,9 +42,16 @@ def _velocity_dependent(scene) -> bool:
 def kick_drift_kick(scene, params: Params, state: State, dt: float, rotate: FreeRotation) -> State:
     """One Strang-split step: half kick, drift with the free rotation ``rotate``, half kick."""
     half = 0.5 * dt
-    force, torque = wrench(scene, params, state)
-    velocity = state.velocity + half * linear_acceleration(params, force)
-    angular_momentum = state.angular_momentum + half * torque
+    # A scene that declares no force (a torque-free body; the contact step's drift) has no
+    # kicks: XLA does not fold ``v + dt/2 (0 / m)`` away (it is not ``v`` where m = 0). In
+    # the bouncing ball's flight (benchmarks/README.md, stop 83) that was 0.1 kernels a
+    # step forward and 0.4 in reverse mode, its derivative with respect to the mass.
+    forced = bool(scene.force_models)
+    velocity, angular_momentum = state.velocity, state.angular_momentum
+    if forced:
+        force, torque = wrench(scene, params, state)
+        velocity = velocity + half * linear_acceleration(params, force)
+        angular_momentum = angular_momentum + half * torque
     drifted = State(
         position=state.position + dt * velocity,
         orientation=rotate(params, state.orientation, angular_momentum, dt),
@@ -52,17 +59,20 @@ def kick_drift_kick(scene, params: Params, state: State, dt: float, rotate: Free
         angular_momentum=angular_momentum,
         time=state.time + dt,
     )
-    force, torque = wrench(scene, params, drifted)
-    if _velocity_dependent(scene):
-        predicted = dataclasses.replace(
-            drifted,
-            velocity=velocity + half * linear_acceleration(params, force),
-            angular_momentum=angular_momentum + half * torque,
-        )
-        force, torque = wrench(scene, params, predicted)
+    if forced:
+        force, torque = wrench(scene, params, drifted)
+        if _velocity_dependent(scene):
+            predicted = dataclasses.replace(
+                drifted,
+                velocity=velocity + half * linear_acceleration(params, force),
+                angular_momentum=angular_momentum + half * torque,
+            )
+            force, torque = wrench(scene, params, predicted)
+        velocity = velocity + half * linear_acceleration(params, force)
+        angular_momentum = angular_momentum + half * torque
     return dataclasses.replace(
         drifted,
-        velocity=velocity + half * linear_acceleration(params, force),
-        angular_momentum=angular_momentum + half * torque,
+        velocity=velocity,
+        angular_momentum=angular_momentum,
         rotation=None if state.rotation is None else spatial.quat_to_matrix(drifted.orientation),
     )
