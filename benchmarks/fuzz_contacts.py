@@ -12,7 +12,10 @@ What it does
 
     Per case it records: whether any value is non-finite (the process crashing is a
     finding too: stop 80's fuzz found an XLA:CPU miscompilation so); the largest one-step
-    gain of total energy (J), and the largest gain over the start (J). Energy may rise
+    gain of total energy (J), and the largest gain over the start (J). With
+    ``--gradients``, also whether the case's gradient (of its final positions, attitudes and
+    total energy, with respect to every param and the initial state; ``jax.grad`` of a sum
+    over ``jax.vmap``) has a NaN or infinite entry, and in which fields. Energy may rise
     in a step by small amounts by design (the split impulse lifting bodies out of an
     overlap restores potential energy the overlap lost; leapfrog's staggered velocity
     shows m (g h / 2)^2 / 2 = 1.2e-5 J a kilogram at rest); see benchmarks/README.md,
@@ -23,6 +26,8 @@ How to run (from the repository root)
     python benchmarks/fuzz_contacts.py                           # sbc, byc, syc: 32 x 400 steps
     python benchmarks/fuzz_contacts.py --compositions bbs --cases 64 --seed 3 --iterations 4
     python benchmarks/fuzz_contacts.py --compositions syc --seed 1 --only 15   # one case
+    python benchmarks/fuzz_contacts.py --gradients --float32 --seed 1           # gradients too
+    python benchmarks/fuzz_contacts.py --compositions bb --solver exact --cases 8
     python benchmarks/fuzz_contacts.py --quick                   # CI smoke run, temp dir
 
 It prints a table and writes ``fuzz_contacts.json`` and ``fuzz_contacts.png`` to ``--out``
@@ -85,9 +90,9 @@ def random_cases(scene: rb.Scene, step, cases: int, seed: int, dtype):
     return jax.tree.map(lambda *x: jnp.stack(x), *params), jax.tree.map(lambda *x: jnp.stack(x), *states)
 
 
-def fuzz(composition: str, cases: int, steps: int, seed: int, dtype, iterations, only) -> dict:
+def fuzz(composition: str, cases: int, steps: int, seed: int, dtype, settings: rb.ContactSettings, only,
+         gradients: bool) -> dict:
     scene = pen(composition)
-    settings = rb.ContactSettings() if iterations is None else rb.ContactSettings(iterations=iterations)
     step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3, contact=settings)
     params, state = random_cases(scene, step, cases, seed, dtype)
     index = np.arange(cases) if only is None else np.asarray(only)
@@ -105,10 +110,41 @@ def fuzz(composition: str, cases: int, steps: int, seed: int, dtype, iterations,
     finite = np.asarray(finite) & np.all(np.isfinite(total), axis=1)
     gains = np.diff(total, axis=1)  # each step's gain of total energy, J
     start_gain = np.max(total - total[:, :1], axis=1)
-    return {"composition": composition, "pairs": len(scene.contact_pairs), "cases": index.tolist(),
-            "seconds_with_compile": seconds, "non_finite_cases": index[~finite].tolist(),
-            "worst_step_gain_J": np.max(gains, axis=1).tolist(), "worst_gain_over_start_J": start_gain.tolist(),
-            "worst_step_gain_step": np.argmax(gains, axis=1).tolist()}
+    record = {"composition": composition, "pairs": len(scene.contact_pairs), "cases": index.tolist(),
+              "seconds_with_compile": seconds, "non_finite_cases": index[~finite].tolist(),
+              "worst_step_gain_J": np.max(gains, axis=1).tolist(), "worst_gain_over_start_J": start_gain.tolist(),
+              "worst_step_gain_step": np.argmax(gains, axis=1).tolist()}
+    if gradients:
+        record.update(gradient_fuzz(step, params, state, steps, index))
+    return record
+
+
+def gradient_fuzz(step, params, state, steps: int, index) -> dict:
+    """Each case's gradient of its final positions, attitudes and total energy with respect to all its
+    params and its initial state, as ``jax.grad`` of a sum over ``jax.vmap`` (the form
+    ``rollout``'s docstring recommends for ensembles). Returns the cases with a non-finite
+    entry, the leaves (``Params``/``State`` fields) where they are, and the compile + run
+    time. Nothing is compared with differences here: across the contacts that a random drop
+    makes and breaks, a difference would straddle them."""
+
+    def loss(p, s):
+        final, _ = rb.rollout(step, p, s, steps)
+        energy = jnp.sum(rb.kinetic_energy(p, final) + rb.potential_energy(p, final))
+        return energy + jnp.sum(final.position) + jnp.sum(final.orientation)
+
+    t0 = time.perf_counter()
+    grads = jax.block_until_ready(jax.jit(jax.grad(lambda p, s: jnp.sum(jax.vmap(loss)(p, s)), argnums=(0, 1)))(
+        params, state))
+    seconds = time.perf_counter() - t0
+    bad_leaves, bad = [], np.zeros(len(index), bool)
+    for path, leaf in jax.tree_util.tree_leaves_with_path(grads):
+        leaf = np.asarray(leaf).reshape(len(index), -1)
+        here = ~np.all(np.isfinite(leaf), axis=1)
+        if here.any():
+            bad_leaves.append(jax.tree_util.keystr(path))
+        bad |= here
+    return {"gradient_seconds_with_compile": seconds, "non_finite_gradient_cases": index[bad].tolist(),
+            "non_finite_gradient_leaves": bad_leaves}
 
 
 def print_table(records) -> None:
@@ -120,6 +156,13 @@ def print_table(records) -> None:
         print(f"{r['composition']:<12}{r['pairs']:>6}{len(r['cases']):>6}{len(r['non_finite_cases']):>11}"
               f"{gain[k]:>21.2e}{r['cases'][k]:>6}{r['worst_step_gain_step'][k]:>6}{over.max():>22.2e}"
               f"{r['seconds_with_compile']:>7.1f}")
+    graded = [r for r in records if "non_finite_gradient_cases" in r]
+    if graded:
+        print(f"\n{'composition':<12}{'cases':>6}{'non-finite gradients':>22}  {'in leaves':<40}{'s':>7}")
+        for r in graded:
+            leaves = ", ".join(r["non_finite_gradient_leaves"]) or "-"
+            print(f"{r['composition']:<12}{len(r['cases']):>6}{len(r['non_finite_gradient_cases']):>22}  {leaves:<40}"
+                  f"{r['gradient_seconds_with_compile']:>7.1f}")
 
 
 def plot(record, path) -> None:
@@ -148,8 +191,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--iterations", type=int, default=None, help="sweeps a solve (default: ContactSettings')")
+    parser.add_argument("--solver", choices=["pgs", "exact"], default="pgs", help="ContactSettings(solver=...)")
     parser.add_argument("--only", type=int, nargs="*", default=None, help="run these cases of the seed only")
     parser.add_argument("--float32", action="store_true")
+    parser.add_argument("--gradients", action="store_true",
+                        help="also each case's gradient (all params and the initial state), checked for NaN/inf")
     parser.add_argument("--quick", action="store_true", help="tiny sizes, to a temp dir (CI)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -165,11 +211,15 @@ def main(argv=None) -> dict:
     dtype = jnp.float32 if args.float32 else jnp.float64
     record = record_header("fuzz_contacts.py", argv)
     record.update({"dtype": jnp.dtype(dtype).name, "steps": args.steps, "seed": args.seed,
-                   "iterations": args.iterations, "runs": []})
+                   "iterations": args.iterations, "solver": args.solver, "runs": []})
+    settings = rb.ContactSettings(solver=args.solver, **({} if args.iterations is None else
+                                                         {"iterations": args.iterations}))
     for composition in args.compositions.split(","):
-        record["runs"].append(fuzz(composition, args.cases, args.steps, args.seed, dtype, args.iterations,
-                                   args.only))
-        print(f"{composition}: done", flush=True)
+        record["runs"].append(fuzz(composition, args.cases, args.steps, args.seed, dtype, settings,
+                                   args.only, args.gradients))
+        run = record["runs"][-1]
+        print(f"{composition}: done, non-finite cases {run['non_finite_cases']}"
+              + (f", non-finite gradients {run['non_finite_gradient_cases']}" if args.gradients else ""), flush=True)
     print_table(record["runs"])
     write_results(out, "fuzz_contacts", record, plot)
     return record

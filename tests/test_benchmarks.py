@@ -94,6 +94,28 @@ def test_contact_fuzz_quick(tmp_path):
         load("fuzz_contacts").main(["--cases", "4", "--only", "4", "--out", str(tmp_path)])
 
 
+def test_contact_fuzz_gradients_quick(tmp_path):
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxrb as rb
+
+    # The gradient mode on the smallest pen (one sphere, five planes), in this process.
+    record = load("fuzz_contacts").main(["--compositions", "s", "--cases", "2", "--steps", "10", "--gradients",
+                                         "--out", str(tmp_path)])
+    (run,) = record["runs"]
+    assert run["non_finite_gradient_cases"] == [] and run["non_finite_gradient_leaves"] == []
+    assert run["gradient_seconds_with_compile"] > 0
+    # The check finds a NaN where there is one: the second case's mass made NaN.
+    fuzz = load("fuzz_contacts")
+    scene = fuzz.pen("s")
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), 1e-3)
+    params, state = fuzz.random_cases(scene, step, 2, 0, jnp.float64)
+    params = params.replace(mass=params.mass.at[1].set(jnp.nan))
+    found = fuzz.gradient_fuzz(step, params, state, 10, np.arange(2))
+    assert found["non_finite_gradient_cases"] == [1] and "[0].mass" in found["non_finite_gradient_leaves"]
+
+
 @pytest.mark.slow
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
