@@ -853,6 +853,36 @@ def test_a_barely_approaching_sliding_contact_has_finite_float32_gradients():
     assert dtype == "float32" and int(nonfinite) == 0, result
 
 
+@pytest.mark.parametrize("to_velocity", [True, False])
+def test_a_padding_slots_zero_block_gives_no_impulse_and_finite_float32_gradients(to_velocity):
+    """The padding slot that fills a colour's pairs lies between two rows of zero inverse
+    mass: its Delassus block is 0. Its impulse moves nothing and is 0. Its Coulomb search
+    on that block (``(0 + lam I)^-1``) had reached ``lam = |u_t| / (mu p)`` = 3e-10 in
+    float32, and ``1 / lam^4`` overflowed in the derivative: with a slip of 3e-10 m/s
+    these four padding contacts had 18 non-finite gradient entries, and a float32 drop of
+    two boxes and a can had NaN gradients everywhere (``benchmarks/fuzz_contacts.py
+    --compositions bby --gradients --float32 --seed 1``, case 20). Slips from 3e-10 to
+    1 m/s, approaching, at rest and separating."""
+    from jaxrb.contact._coulomb import coulomb_impulse
+
+    f32 = jnp.float32
+    zero, mu, value = jnp.zeros((3, 3), f32), f32(0.5), f32(0.0 if to_velocity else 0.2)
+
+    def loss(u):
+        return jnp.sum(coulomb_impulse(zero, u, mu, value, to_velocity) * jnp.array([1.0, 0.3, 0.7], f32))
+
+    for slip in (3e-10, 1e-9, 1e-3, 1.0):
+        u = jnp.array([[normal, -1e-2 * slip, slip] for normal in (-1.0, -1e-3, 0.0, 0.5)], f32)
+        grads = jax.vmap(jax.grad(loss))(u)
+        assert np.all(np.isfinite(np.asarray(grads))), (slip, grads)
+        # With respect to the block and mu too, one contact at a time.
+        whole = jax.grad(lambda k, u, mu: jnp.sum(coulomb_impulse(k, u, mu, value, to_velocity)),
+                         argnums=(0, 1, 2))(zero, u[0], mu)
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in whole), (slip, whole)
+        impulse = jax.vmap(coulomb_impulse, in_axes=(None, 0, None, None, None))(zero, u, mu, value, to_velocity)
+        assert impulse.dtype == f32 and np.all(np.asarray(impulse) == 0.0), (slip, impulse)
+
+
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
 def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):
     """resolve_impacts: two touching balls (1 and 3 kg) approaching at 0.1 m/s, below the

@@ -99,7 +99,18 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     more than ``mu p``, ``lam > 0`` is the root of ``1/|x(lam)| = 1/(mu p(lam))`` (Moré and
     Sorensen's form, nearly linear in ``lam``), with ``p(lam)`` fixed, or from the normal
     row, ``k_nn p + k_nt x = value - u_n``, solved for ``p``. Both kinds share one program:
-    the impact law's passes select theirs with a traced flag."""
+    the impact law's passes select theirs with a traced flag.
+
+    A block with ``k_nn <= 0`` moves nothing (the padding slot that fills a colour's
+    pairs, between two rows of zero inverse mass): its impulse is 0, and it is solved on
+    the identity block instead, whose derivatives are finite. On its own zero block the
+    search's multiplier, unused, came to ``|u_t| / (mu p)``, 3e-10 in float32 scenes with
+    resting boxes; the derivative of ``(k_tt + lam I)^-1`` then had ``1 / lam^4`` = 1e38,
+    which overflowed, and reverse mode multiplied the infinity by the padding slot's zero
+    cotangent: NaN gradients for the whole step (``benchmarks/fuzz_contacts.py
+    --gradients --float32``, stop 85)."""
+    empty = k[0, 0] <= 0
+    k = jnp.where(empty, jnp.eye(3, dtype=k.dtype), k)
     a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
     need = value - u[0]
     theta = (k, u, mu, value, jnp.asarray(to_velocity, k.dtype))  # the flag as a number: a float tangent
@@ -157,7 +168,7 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     # Without friction the root is at lam = infinity: the frictionless impulse.
     frictionless = jnp.concatenate([jnp.reshape(reference, (1,)), jnp.zeros_like(slip)])
     result = jnp.where(mu > 0, result, frictionless)
-    return jnp.where(jnp.where(to_velocity, need, value) > 0, result, 0.0)
+    return jnp.where(~empty & (jnp.where(to_velocity, need, value) > 0), result, 0.0)
 
 
 def frictionless_impulse(k, u, target):
