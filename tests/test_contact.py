@@ -883,6 +883,47 @@ def test_a_padding_slots_zero_block_gives_no_impulse_and_finite_float32_gradient
         assert impulse.dtype == f32 and np.all(np.asarray(impulse) == 0.0), (slip, impulse)
 
 
+#: A slot of the float32 ensemble of ``benchmarks/repro/vmap_forward_nan_bby.py``: a box
+#: sliding at 0.05 m/s on a box, approaching at 4.6e-22 m/s (its Delassus block, 1/kg).
+#: (Symmetrised: the saved block's off-diagonal entries differ in their float32 rounding.)
+_SLIDING_K = [[4.018608, -1.2767328, -1.7225623], [-1.2767328, 2.524734, -1.1209462],
+              [-1.7225623, -1.1209462, 5.456695]]
+_SLIDING_U = [-4.578968e-22, 5.097960e-02, 2.446479e-02]
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_an_approach_below_rounding_gives_no_impulse_and_no_nan(dtype):
+    """A sliding contact approaching by less than the rounding of its velocity (``k_nn p <=
+    eps |u|``) gets no impulse. Its friction search had bracketed the multiplier ``|u_t| /
+    (mu p)`` at 1.5e21 in float32, whose square overflowed: the impulse was NaN, and a
+    float32 ensemble's member went NaN wherever its compilation rounded that ``u_n`` below 0
+    (``benchmarks/repro/vmap_forward_nan_bby.py``, stop 86). In float64 the same at an
+    approach of 1e-200 m/s. Faster approaches (1e-5 m/s up) still get Coulomb's impulse:
+    ``u_n' = 0`` and friction on the cone's edge, opposite the slip."""
+    from jaxrb.contact._coulomb import coulomb_impulse
+
+    k, mu = jnp.asarray(_SLIDING_K, dtype), jnp.asarray(0.65826553, dtype)
+    tiny = _SLIDING_U[0] if dtype == jnp.float32 else -1e-200
+    for kind, value in ((True, 0.0), (False, -tiny / 4.0)):  # to u_n = 0, or a given p that small
+        u = jnp.asarray([tiny, *_SLIDING_U[1:]], dtype)
+        impulse = coulomb_impulse(k, u, mu, jnp.asarray(value, dtype), kind)
+        assert impulse.dtype == dtype and np.all(np.asarray(impulse) == 0.0), (kind, impulse)
+        grads = jax.grad(lambda k, u, mu, v, kind=kind: jnp.sum(coulomb_impulse(k, u, mu, v, kind)),
+                         argnums=(0, 1, 2, 3))(k, u, mu, jnp.asarray(value, dtype))
+        assert all(np.all(np.isfinite(np.asarray(g))) for g in grads), (kind, grads)
+    for approach in (1e-5, 1e-3, 1.0):
+        u = jnp.asarray([-approach, *_SLIDING_U[1:]], dtype)
+        impulse = coulomb_impulse(k, u, mu, jnp.asarray(0.0, dtype), True)
+        p, x = float(impulse[0]), np.asarray(impulse[1:])
+        after = np.asarray(u + k @ impulse)
+        eps = float(jnp.finfo(dtype).eps)
+        assert p > 0 and abs(after[0]) <= 64 * eps * (approach + 0.06), (approach, impulse, after)
+        np.testing.assert_allclose(np.linalg.norm(x), float(mu) * p, rtol=64 * eps)
+        assert np.dot(x, after[1:]) < 0  # friction opposes the slip it leaves
+        grads = jax.grad(lambda u: jnp.sum(coulomb_impulse(k, u, mu, jnp.asarray(0.0, dtype), True)))(u)
+        assert np.all(np.isfinite(np.asarray(grads))), (approach, grads)
+
+
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
 def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):
     """resolve_impacts: two touching balls (1 and 3 kg) approaching at 0.1 m/s, below the

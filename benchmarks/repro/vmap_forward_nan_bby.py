@@ -1,11 +1,15 @@
-"""Reproduction of an open bug: one member of a vmapped step turns NaN because of another.
+"""Reproduction of a fixed bug: a member of a vmapped float32 step turned NaN.
 
 Two members of ``benchmarks/fuzz_contacts.py``'s box-box-can pen (float32, seed 1, cases
 20 and 25 of 32), at the states a 4-member ensemble reached after 355 steps
-(``vmap_forward_nan_bby.npz``, saved 2026-12-06). Member 1 stepped alone is finite; beside
-member 0, or any other member, its next state is NaN. Found by ``fuzz_contacts.py
---compositions bby --only 20 25 29 30 --float32 --seed 1``; not located yet (see
-benchmarks/README.md, stop 85). Prints each member's finiteness, alone and together.
+(``vmap_forward_nan_bby.npz``, saved 2026-12-06). Until stop 86, member 1 stepped alone
+was finite, and in any batch of two (beside member 0, or beside itself) its next state
+was NaN: the batched compilation rounded one sliding slot's approach to -4.6e-22 m/s
+(a rounding: the unbatched step stayed finite), and the Coulomb search of the impact law bracketed its multiplier at 1.5e21,
+whose square overflowed (see ``jaxrb.contact._coulomb.coulomb_impulse`` and
+``tests/test_contact.py::test_an_approach_below_rounding_gives_no_impulse_and_no_nan``).
+Prints each member's finiteness, alone and together: all ``True`` since the fix (before
+it, ``[True]``, ``[True]``, ``[True, False]``).
 
     python benchmarks/repro/vmap_forward_nan_bby.py
 """

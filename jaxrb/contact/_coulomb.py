@@ -28,6 +28,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._branch import branch
 from .._implicit import implicit_root
@@ -108,11 +109,25 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     resting boxes; the derivative of ``(k_tt + lam I)^-1`` then had ``1 / lam^4`` = 1e38,
     which overflowed, and reverse mode multiplied the infinity by the padding slot's zero
     cotangent: NaN gradients for the whole step (``benchmarks/fuzz_contacts.py
-    --gradients --float32``, stop 85)."""
+    --gradients --float32``, stop 85).
+
+    An impulse that would change ``u`` by less than its rounding, ``k_nn p <= eps |u|``
+    (an approach ``value - u_n`` that small, or a given ``p`` that small), is 0: ``u_n``
+    is 0 to rounding there. Searched, its multiplier ``|u_t| / (mu p)`` had no bound: a
+    box sliding at 0.05 m/s and approaching at 4.6e-22 m/s (float32) bracketed the root at
+    1.5e21, whose square overflowed, and the impulse was NaN. The approach was rounding:
+    a batched compilation of the same step made it, the unbatched one did not (stop 86,
+    ``benchmarks/repro/vmap_forward_nan_bby.py``). With ``k_nn p > eps |u|`` the bracket
+    is of the order of ``k_nn / (mu eps)`` at most (with terms in ``|k_tn| / mu`` and
+    ``|k_tn| / eps``). It is capped at ``sqrt(max) / 16`` as well, where the determinant
+    of ``k_tt + lam I`` still fits the dtype (a ``mu`` of 1e-10 can reach that in
+    float32; then ``x`` is the cap's, brought onto the disk)."""
     empty = k[0, 0] <= 0
     k = jnp.where(empty, jnp.eye(3, dtype=k.dtype), k)
     a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
     need = value - u[0]
+    # The velocity change the impulse is asked for, against the rounding of ``u``.
+    pushes = jnp.where(to_velocity, need, k[0, 0] * value) > jnp.finfo(k.dtype).eps * _norm(u)
     theta = (k, u, mu, value, jnp.asarray(to_velocity, k.dtype))  # the flag as a number: a float tangent
     impulse = functools.partial(_impulse, theta=theta)
 
@@ -128,6 +143,7 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
                     2 * _norm(coupling) * _norm(slip) / _where_positive(need))
     hi = jnp.where(to_velocity, jnp.maximum(s, 2 * (_norm(slip) + 3 * _norm(coupling) * reference) / radius),
                    _norm(slip + coupling * value) / radius)
+    hi = jnp.minimum(hi, float(np.sqrt(jnp.finfo(k.dtype).max)) / 16)
     spread = _safe_sqrt((a[0, 0] - a[1, 1]) ** 2 / 4 + a[0, 1] ** 2)  # 0 for an isotropic k_tt
     start = jnp.clip(_norm(slip + coupling * reference) / radius - (a[0, 0] + a[1, 1]) / 2 - spread, 0.0, hi)
 
@@ -149,7 +165,6 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
         return (jnp.where(inside, step, middle), lo, hi), None
 
     def root(start, hi):
-        start, hi = jax.lax.stop_gradient((start, hi))
         (lam, _, _), _ = jax.lax.scan(newton, (start, jnp.zeros_like(hi), hi), None, length=ITERATIONS)
         return implicit_root(_phi, lam, theta, 1)
 
@@ -157,8 +172,11 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     # impact law's vmap over pairs, ``branch`` still skips it when no pair needs it, in
     # derivatives too.) Recomputed in reverse mode, so that no residuals are zero-filled
     # where it is skipped.
-    slides_at_all = (mu > 0) & ~sticks & (jnp.where(to_velocity, need, value) > 0)
-    lam = branch(slides_at_all, root, lambda start, _: start, start, hi, recompute_in_reverse=True)
+    slides_at_all = (mu > 0) & ~sticks & pushes
+    # (Without tangents either way: where the root is not searched, ``lam`` is not used, and
+    # the start's ``1 / radius`` has an infinite derivative where ``mu p`` is tiny.)
+    lam = branch(slides_at_all, root, lambda start, _: start, *jax.lax.stop_gradient((start, hi)),
+                 recompute_in_reverse=True)
     p, x = impulse(lam)
     # On the disk (an iterate short of the root leaves |x| a little over mu p).
     x = x * jnp.minimum(1.0, mu * p * _reciprocal(_norm(x)))
@@ -168,7 +186,7 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     # Without friction the root is at lam = infinity: the frictionless impulse.
     frictionless = jnp.concatenate([jnp.reshape(reference, (1,)), jnp.zeros_like(slip)])
     result = jnp.where(mu > 0, result, frictionless)
-    return jnp.where(~empty & (jnp.where(to_velocity, need, value) > 0), result, 0.0)
+    return jnp.where(~empty & pushes, result, 0.0)
 
 
 def frictionless_impulse(k, u, target):
