@@ -5,8 +5,8 @@ Two members of ``benchmarks/fuzz_contacts.py``'s box-box-can pen (float32, seed 
 (``vmap_forward_nan_bby.npz``, saved 2026-12-06). Until stop 86, member 1 stepped alone
 was finite, and in any batch of two (beside member 0, or beside itself) its next state
 was NaN: the batched compilation rounded one sliding slot's approach to -4.6e-22 m/s
-(a rounding: the unbatched step stayed finite), and the Coulomb search of the impact law bracketed its multiplier at 1.5e21,
-whose square overflowed (see ``jaxrb.contact._coulomb.coulomb_impulse`` and
+(a rounding: the unbatched step stayed finite), and the Coulomb search of the impact
+law bracketed its multiplier at 1.5e21, whose square overflowed (see ``jaxrb.contact._coulomb.coulomb_impulse`` and
 ``tests/test_contact.py::test_an_approach_below_rounding_gives_no_impulse_and_no_nan``).
 Prints each member's finiteness, alone and together: all ``True`` since the fix (before
 it, ``[True]``, ``[True]``, ``[True, False]``).
