@@ -952,6 +952,28 @@ def test_tiny_approaches_and_slips_give_finite_coulomb_impulses_and_gradients(dt
     assert np.all(np.asarray(impulses)[-len(slips):, 0] > 0)  # at 1e-3 m/s they push
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_the_frictionless_impulse_is_coulombs_at_zero_friction(dtype):
+    """The impact law's frictionless passes use ``frictionless_impulse``, its friction
+    passes ``coulomb_impulse``: at ``mu = 0`` they give the same impulse, bit for bit,
+    for approaches from below rounding (no impulse in either) to 1 m/s, for separating
+    contacts (none) and for the padding slot's zero block (none). Until stop 87 the
+    frictionless one pushed below rounding (``need / k_nn``) where Coulomb's gives 0."""
+    from jaxrb.contact._coulomb import coulomb_impulse, frictionless_impulse
+
+    k = jnp.asarray(_SLIDING_K, dtype)
+    tiny = (-1e-30, -4.6e-22) if dtype == jnp.float32 else (-1e-250, -1e-200)
+    normals = np.array([*tiny, -1e-5, -1e-3, -1.0, 0.0, 0.5])
+    u = jnp.asarray(np.stack([normals, np.full_like(normals, 0.05), np.full_like(normals, 0.02)], -1), dtype)
+    zero = jnp.asarray(0.0, dtype)
+    for block in (k, jnp.zeros_like(k)):
+        plain = jax.jit(jax.vmap(lambda u, block=block: frictionless_impulse(block, u, zero)))(u)
+        coulomb = jax.jit(jax.vmap(lambda u, block=block: coulomb_impulse(block, u, zero, zero, True)))(u)
+        np.testing.assert_array_equal(plain, coulomb)
+    pushed = np.asarray(jax.vmap(lambda u: frictionless_impulse(k, u, zero))(u))[:, 0]
+    assert np.all(pushed[:2] == 0.0) and np.all(pushed[2:5] > 0.0) and np.all(pushed[5:] == 0.0), pushed
+
+
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
 def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):
     """resolve_impacts: two touching balls (1 and 3 kg) approaching at 0.1 m/s, below the

@@ -191,10 +191,13 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
 
 def frictionless_impulse(k, u, target):
     """The impulse ``(p, 0, 0)`` ``(3,)`` that brings ``u_n`` to ``target`` (m/s) without
-    friction, ``p = (target - u_n) / k_nn`` (0 where ``u_n >= target``): what
-    :func:`coulomb_impulse` gives at ``mu = 0``, the same arithmetic, without its search."""
+    friction, ``p = (target - u_n) / k_nn``: what :func:`coulomb_impulse` gives at
+    ``mu = 0``, the same arithmetic and the same rule for when it pushes (0 where
+    ``target - u_n <= eps |u|``, an approach below the rounding of ``u``, and where
+    ``k_nn <= 0``), without its search."""
     need = target - u[0]
-    p = jnp.where(need > 0, need / _where_positive(k[0, 0]), 0.0)
+    pushes = (need > jnp.finfo(k.dtype).eps * _norm(u)) & (k[0, 0] > 0)
+    p = jnp.where(pushes, need / _where_positive(k[0, 0]), 0.0)
     return jnp.concatenate([jnp.reshape(p, (1,)), jnp.zeros_like(u[1:])])
 
 
