@@ -205,7 +205,14 @@ def potential_energy(params: Params, state: State) -> Float[Array, " n"]:
 
 
 def total_energy(params: Params, state: State) -> Float[Array, " n"]:
-    """Kinetic plus gravitational potential energy per body (J)."""
+    """Kinetic plus gravitational potential energy per body (J).
+
+    After a contact step the velocity is leapfrog's: a body resting under gravity shows
+    ``g dt / 2`` (the closing half kick), and a body in contact can show a one-step gain of
+    the order of ``m |v| |g| dt / 2``, 2e-5 J for a 2 kg capsule tipping over on the ground
+    at dt = 1 ms. That is the time discretisation, not an impulse adding energy: over the
+    same millisecond the gain was 7.5e-7 J at dt = 0.1 ms, and a loss at 0.01 ms
+    (benchmarks/README.md, stop 87)."""
     return kinetic_energy(params, state) + potential_energy(params, state)
 
 
