@@ -71,6 +71,12 @@ def _norm(v):
     return _safe_sqrt(jnp.sum(v * v))
 
 
+def _beyond_rounding(change, u):
+    """Whether a change ``change`` (m/s) of ``u_n`` is larger than the rounding of ``u``
+    ``(3,)``: the rule by which both impulses below push or give 0."""
+    return change > jnp.finfo(jnp.result_type(change, u)).eps * _norm(u)
+
+
 def _impulse(lam, theta):
     """``(p, x)`` at the friction multiplier ``lam`` (see :func:`coulomb_impulse`);
     ``theta = (k, u, mu, value, to_velocity)``, the flag as a number."""
@@ -127,7 +133,7 @@ def coulomb_impulse(k, u, mu, value, to_velocity):
     a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
     need = value - u[0]
     # The velocity change the impulse is asked for, against the rounding of ``u``.
-    pushes = jnp.where(to_velocity, need, k[0, 0] * value) > jnp.finfo(k.dtype).eps * _norm(u)
+    pushes = _beyond_rounding(jnp.where(to_velocity, need, k[0, 0] * value), u)
     theta = (k, u, mu, value, jnp.asarray(to_velocity, k.dtype))  # the flag as a number: a float tangent
     impulse = functools.partial(_impulse, theta=theta)
 
@@ -196,7 +202,7 @@ def frictionless_impulse(k, u, target):
     ``target - u_n <= eps |u|``, an approach below the rounding of ``u``, and where
     ``k_nn <= 0``), without its search."""
     need = target - u[0]
-    pushes = (need > jnp.finfo(k.dtype).eps * _norm(u)) & (k[0, 0] > 0)
+    pushes = _beyond_rounding(need, u) & (k[0, 0] > 0)
     p = jnp.where(pushes, need / _where_positive(k[0, 0]), 0.0)
     return jnp.concatenate([jnp.reshape(p, (1,)), jnp.zeros_like(u[1:])])
 
