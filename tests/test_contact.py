@@ -966,12 +966,15 @@ def test_the_frictionless_impulse_is_coulombs_at_zero_friction(dtype):
     normals = np.array([*tiny, -1e-5, -1e-3, -1.0, 0.0, 0.5])
     u = jnp.asarray(np.stack([normals, np.full_like(normals, 0.05), np.full_like(normals, 0.02)], -1), dtype)
     zero = jnp.asarray(0.0, dtype)
+    plains = []
     for block in (k, jnp.zeros_like(k)):
         plain = jax.jit(jax.vmap(lambda u, block=block: frictionless_impulse(block, u, zero)))(u)
         coulomb = jax.jit(jax.vmap(lambda u, block=block: coulomb_impulse(block, u, zero, zero, True)))(u)
         np.testing.assert_array_equal(plain, coulomb)
-    pushed = np.asarray(jax.vmap(lambda u: frictionless_impulse(k, u, zero))(u))[:, 0]
+        plains.append(np.asarray(plain))
+    pushed = plains[0][:, 0]  # the real block's normal impulses
     assert np.all(pushed[:2] == 0.0) and np.all(pushed[2:5] > 0.0) and np.all(pushed[5:] == 0.0), pushed
+    assert not np.any(plains[1]), plains[1]  # the zero block pushes nothing
 
 
 @pytest.mark.parametrize("e", [0.0, 0.5, 1.0])
