@@ -49,6 +49,8 @@ class FitResult:
         relinearise: :func:`fit_least_squares` only: ``relinearise(params, rcond)``, the
             :func:`jaxrb.identify.identifiability` report of the fit's residuals and data
             at ``params`` (a new linearisation in the physical parameters).
+        measurement_size: :func:`fit_least_squares` only: the norm of ``data``'s values (0
+            without data), which :meth:`identifiability` measures rounding against.
     """
 
     params: Params
@@ -62,6 +64,7 @@ class FitResult:
     residuals: np.ndarray | None = None
     jacobian: np.ndarray | None = None
     relinearise: Callable | None = dataclasses.field(default=None, repr=False, compare=False)
+    measurement_size: float = 0.0
 
     def identifiability(self, rcond: float | None = None):
         """The :func:`jaxrb.identify.identifiability` report at the fit.
@@ -84,7 +87,8 @@ class FitResult:
                 "Call rb.identify.identifiability(residuals, scene, result.params, free, data=...) instead."
             )
         try:
-            return from_unconstrained_jacobian(self.space, self.params, self.jacobian, self.residuals, rcond)
+            return from_unconstrained_jacobian(self.space, self.params, self.jacobian, self.residuals, rcond,
+                                               self.measurement_size)
         except FlatMapError:
             if self.relinearise is None:
                 raise
@@ -125,6 +129,14 @@ def _objective(fn: Callable, data, batched: bool, reduce: Callable):
     return lambda params: fn(params, data)
 
 
+def _measurement_size(data) -> float:
+    """The norm of ``data``'s floating-point values: the size the identifiability report
+    measures rounding against (0 with no data)."""
+    values = [np.ravel(np.asarray(x, dtype=float)) for x in jax.tree.leaves(data)
+              if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
+    return float(np.linalg.norm(np.concatenate(values))) if values else 0.0
+
+
 class _Progress:
     """A one-line text progress bar on stderr (works in terminals and notebooks)."""
 
@@ -148,6 +160,10 @@ class _Progress:
 
 def _space(scene, params, free, friction_max, for_fit: bool = True) -> FreeParameters:
     if isinstance(free, FreeParameters):
+        if for_fit and not free.for_fit:
+            # Built for a report (any finite point): a fit also needs every free value inside
+            # its domain, or its start is -inf (e = 0: logit 0) and the fit stalls there.
+            return dataclasses.replace(free, for_fit=True)
         return free
     return FreeParameters(scene, params, free, friction_max=friction_max, for_fit=for_fit)
 
@@ -309,7 +325,8 @@ def fit_least_squares(
             ``batched=True`` the experiments' residuals are concatenated.
         xtol: converged when a step changes no unconstrained coordinate ``z`` by more than
             ``xtol (1 + |z|)`` (each by its own size: a large coordinate does not loosen
-            the test for the others).
+            the test for the others); not where the steps were cut down that far because
+            the residuals are not finite beyond the iterate (``converged=False``).
         gtol: converged when the gradient ``J^T r`` has no entry above it.
         damping: the initial ``lam``, relative to the largest entry of ``J^T J``.
         Other arguments: as :func:`fit`.
@@ -343,6 +360,7 @@ def fit_least_squares(
     history = [cost]
     iterates = [space.physical(unravel(flat))] if keep_iterates else None
     lam, nu = None, 2.0
+    walled = False  # a step was rejected for non-finite residuals, and only small ones accepted since
     converged, message, step = False, f"max_steps={max_steps} reached", 0
     for step in range(1, max_steps + 1):
         if not np.isfinite(cost) or not np.all(np.isfinite(jac)):
@@ -369,12 +387,22 @@ def fit_least_squares(
             x, r, jac, cost = x + delta, r_new, jac_new, cost_new
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
+            walled = walled and small
         else:
             lam, nu = lam * nu, 2.0 * nu
+            walled = walled or not np.isfinite(cost_new)
         history.append(cost)
         if keep_iterates:
             iterates.append(space.physical(unravel(jnp.asarray(x, flat.dtype))))
         bar.update(step, cost)
+        if small and walled:
+            # Steps rejected for a non-finite simulation (it blows up between the iterate and
+            # the minimum) shrink, and those accepted creep up to where it does, until they
+            # pass the xtol test: not convergence, and the gradient there need not be small.
+            message = (f"the residuals are not finite beyond the last iterate: the steps toward the minimum "
+                       f"were rejected or cut down to xtol={xtol:g} (gradient up to {np.max(np.abs(jac.T @ r)):.3g}); "
+                       f"the last iterate is returned")
+            break
         if small:
             converged, message = True, f"step below xtol={xtol:g}"
             break
@@ -386,4 +414,4 @@ def fit_least_squares(
         return identifiability(residuals, scene, at, space, data=data, batched=batched, rcond=rcond)
 
     return FitResult(space.physical(z), cost, np.asarray(history), converged, step, message, space, iterates,
-                     residuals=r, jacobian=jac, relinearise=relinearise)
+                     residuals=r, jacobian=jac, relinearise=relinearise, measurement_size=_measurement_size(data))

@@ -13,7 +13,9 @@ singular value that is a tiny fraction of the largest (below ``rcond``) names a 
 the residuals: it is unidentifiable from these data. So is one whose residual change is at
 the level of rounding, whatever the others' (a single free parameter has no other to be
 compared with): a singular value below ``sqrt(eps)`` times the size of the data (the
-norm of ``data``'s values and of the residuals, the larger). Two classic cases: free fall alone
+norm of the measurements, ``data``'s values unless ``measurement_size`` is given, and of
+the residuals, the larger; with neither, at an exact fit, a warning says the test cannot
+be made). Two classic cases: free fall alone
 says nothing about mass (the column is zero), and torque-free tumbling, given its initial
 angular velocity, says nothing about the inertia's scale (``v`` is the inertia itself).
 """
@@ -21,6 +23,7 @@ angular velocity, says nothing about the inertia's scale (``v`` is the inertia i
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 
 import jax
@@ -30,7 +33,7 @@ import numpy as np
 
 from ..scene import Scene
 from ..state import Params
-from ._fit import _objective, _space
+from ._fit import _measurement_size, _objective, _space
 
 __all__ = ["Identifiability", "identifiability", "from_unconstrained_jacobian", "FlatMapError"]
 
@@ -61,8 +64,9 @@ class Identifiability:
         std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
         rcond: the threshold used.
         floor: the absolute threshold: ``sqrt(eps)`` times the size of the data (the norm
-            of ``data``'s values and of the residuals, the larger). A sensitivity below it
-            is rounding, as the mass's in free fall is (1e-17 against data of size 4).
+            of the measurements, ``measurement_size`` or ``data``'s values, and of the
+            residuals, the larger). A sensitivity below it is rounding, as the mass's in
+            free fall is (1e-17 against data of size 4).
         scale: ``(p,)`` the relative coordinates' scale ``|theta|`` (1 for zero entries):
             a direction ``v`` is the change ``scale * v`` in each parameter's own units.
     """
@@ -124,6 +128,7 @@ def identifiability(
     batched: bool = False,
     rcond: float | None = None,
     friction_max: float = 2.0,
+    measurement_size: float | None = None,
 ) -> Identifiability:
     """Sensitivities, identifiable directions and the Gauss-Newton covariance at ``params``.
 
@@ -139,6 +144,13 @@ def identifiability(
         friction_max: as given to the fit. ``params`` need not be a fit's start: any
             finite values will do (``e = 0``, a flat plate's inertia, a friction above
             ``friction_max``), as the report moves the physical values themselves.
+        measurement_size: the size of the measurements, in the residuals' units (e.g. the
+            norm of the measured heights, m), which sets the rounding ``floor``. Default:
+            the norm of ``data``'s floating-point values, so give it when ``data`` also
+            holds other arrays (sample times, inputs: microsecond time stamps beside
+            heights once made a restitution known to 3e-5 "unidentifiable"), or when the
+            measurements live in ``residuals`` itself (``data=None``) and the residuals are
+            zero (a study on noise-free data), where the floor is otherwise zero.
 
     Returns:
         An :class:`Identifiability` report (``print`` it).
@@ -154,20 +166,26 @@ def identifiability(
         return jax.jacfwd(lambda t: (r(t),) * 2, has_aux=True)(theta)
 
     jac, res = (np.asarray(a, dtype=float) for a in linearise(theta))
-    values = [np.ravel(np.asarray(x, dtype=float)) for x in jax.tree.leaves(data)
-              if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
-    size = float(np.linalg.norm(np.concatenate(values))) if values else 0.0
+    size = _measurement_size(data) if measurement_size is None else _checked_size(measurement_size)
     return _report(space, params, np.asarray(theta, dtype=float), jac, res, rcond, size)
 
 
-def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcond: float | None = None):
+def _checked_size(size) -> float:
+    if isinstance(size, bool) or not (isinstance(size, (int, float, np.floating)) and 0 <= size < np.inf):
+        raise ValueError(f"measurement_size must be a finite number >= 0 (the norm of the measurements, in the "
+                         f"residuals' units), got {size!r}.")
+    return float(size)
+
+
+def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcond: float | None = None,
+                                measurement_size: float = 0.0):
     """The report at ``params`` from ``dr/dz`` ``(m, n)`` in the unconstrained coordinates.
 
     ``dr/dtheta = dr/dz (dtheta/dz)^-1``, with ``dtheta/dz`` the Jacobian of the parameter
-    maps alone (no simulation). No data are given here, so the rounding floor is measured
-    against the residuals alone (zero at an exact fit). Coordinates that move no free value (fixed entries of a
-    free field) are dropped first, which leaves the square, invertible Jacobian of the
-    per-field bijections.
+    maps alone (no simulation). The rounding floor is measured against
+    ``measurement_size`` (a fit passes its data's) and the residuals, the larger.
+    Coordinates that move no free value (fixed entries of a free field) are dropped first,
+    which leaves the square, invertible Jacobian of the per-field bijections.
     """
     again = "Call rb.identify.identifiability(residuals, scene, params, free, data=...) instead."
     try:
@@ -202,7 +220,8 @@ def from_unconstrained_jacobian(space, params: Params, jacobian, residuals, rcon
     # dr/dtheta = dr/dz square^-1, with square = diag(rows) (square / rows).
     jac_theta = np.linalg.solve((square / rows).T, jacobian[:, moving].T).T / rows.T
     theta = np.asarray(space.to_vector(params), dtype=float)
-    return _report(space, params, theta, jac_theta, np.asarray(residuals, dtype=float).ravel(), rcond)
+    return _report(space, params, theta, jac_theta, np.asarray(residuals, dtype=float).ravel(), rcond,
+                   _checked_size(measurement_size))
 
 
 def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) -> Identifiability:
@@ -228,6 +247,12 @@ def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) ->
     # single free parameter, or several that all cancel out of the simulation (the mass in
     # free fall, 1e-17 m per unit relative change), has no larger one to be compared with.
     floor = float(np.sqrt(eps)) * max(size, float(np.linalg.norm(res)))
+    if floor == 0.0:
+        # No measurement size and an exact fit: a sensitivity that is rounding (the mass's in
+        # free fall) cannot be told from a real one, and would be reported identifiable.
+        warnings.warn("The report has no scale for rounding (no measurement size and zero residuals), so a "
+                      "parameter the data do not determine may be reported identifiable. Pass data= to the "
+                      "fit or report, or measurement_size= to rb.identify.identifiability.", stacklevel=3)
     weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= max(rcond * top, floor)]
     # With no residual to spare (m <= p) the noise variance cannot be estimated from the
     # fit (an exact fit would claim zero error): NaN, not |r|^2 / 1.

@@ -73,10 +73,16 @@ def inertia_to_unconstrained(inertia) -> np.ndarray:
     """Inverse of :func:`inertia_from_unconstrained` (NumPy, concrete values).
 
     Raises:
-        ValueError: if the inertia is not symmetric positive definite with the strict
-            triangle inequality (its second moment ``S`` is not positive definite).
+        ValueError: if the inertia is not ``(..., 3, 3)``, not finite, not symmetric (to
+            1e-6 of its largest entry), or not positive definite with the strict triangle
+            inequality (its second moment ``S`` is not positive definite).
     """
     inertia = np.asarray(inertia, dtype=float)
+    if inertia.ndim < 2 or inertia.shape[-2:] != (3, 3):
+        raise ValueError(f"An inertia must have shape (..., 3, 3), got {inertia.shape}.")
+    if not np.all(np.isfinite(inertia)):
+        raise ValueError(f"An inertia is not finite: {inertia}.")
+    _check_symmetric(inertia, "An inertia")
     half_trace = 0.5 * np.trace(inertia, axis1=-2, axis2=-1)
     second_moment = half_trace[..., None, None] * np.eye(3) - 0.5 * (inertia + np.swapaxes(inertia, -1, -2))
     try:
@@ -89,6 +95,16 @@ def inertia_to_unconstrained(inertia) -> np.ndarray:
         ) from None
     diag = np.diagonal(chol, axis1=-2, axis2=-1)
     return np.concatenate([np.log(diag), np.stack([chol[..., i, j] for i, j in _LOWER], -1)], -1)
+
+
+def _check_symmetric(inertia: np.ndarray, what: str) -> None:
+    """Raise if an inertia ``(..., 3, 3)`` differs from its transpose by more than 1e-6 of
+    its largest entry: its six entries are what a fit moves, and the map would replace an
+    asymmetric one by its symmetric part without a word."""
+    asymmetry = np.max(np.abs(inertia - np.swapaxes(inertia, -1, -2)), initial=0.0)
+    if asymmetry > 1e-6 * np.max(np.abs(inertia), initial=0.0):
+        raise ValueError(f"{what} is not symmetric (|I - I^T| up to {asymmetry:.3g}): an inertia tensor is, and "
+                         f"its six entries are what is fitted. Give (I + I^T) / 2 if that is what you meant.")
 
 
 # ------------------------------------------------------------------ free entries
@@ -243,12 +259,7 @@ class FreeParameters:
                 raise ValueError(f"The free {field} is not finite: {values if field == 'extra' else values[0]}. "
                                  f"Give a finite {'guess' if self.for_fit else 'point of analysis'}.")
         if "inertia" in self.masks:
-            inertia = np.asarray(p.inertia, float)[self.masks["inertia"]]
-            asymmetry = np.max(np.abs(inertia - np.swapaxes(inertia, -1, -2)), initial=0.0)
-            if asymmetry > 1e-6 * np.max(np.abs(inertia), initial=0.0):
-                raise ValueError(f"A free inertia is not symmetric (|I - I^T| up to {asymmetry:.3g}): an inertia "
-                                 f"tensor is, and its six entries are what is fitted. Give (I + I^T) / 2 if "
-                                 f"that is what you meant.")
+            _check_symmetric(np.asarray(p.inertia, float)[self.masks["inertia"]], "A free inertia")
         if not self.for_fit:
             return
         checks = {
