@@ -64,6 +64,8 @@ __all__ = [
     "principal_axes",
     "repeated_moment_coupling",
     "check_mass_properties",
+    "check_mass",
+    "check_inertia",
 ]
 
 
@@ -168,14 +170,38 @@ def _central(mass: ArrayLike, ix: ArrayLike, iy: ArrayLike, iz: ArrayLike) -> Ma
     return MassProperties(jnp.asarray(mass), com, inertia)
 
 
+def _concrete_array(x) -> np.ndarray | None:
+    """``x`` as a float NumPy array, or ``None`` while it is being traced."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x, dtype=float)
+
+
+def _check_sizes(what: str, mass, zero_allowed: tuple = (), **sizes) -> None:
+    """Concrete values only (traced ones pass): the mass and every size must be finite and
+    positive (the sizes named in ``zero_allowed`` may be 0). The shape classes check their
+    sizes; these functions had taken a negative radius or mass without a word."""
+    for name, value in {"mass": mass, **sizes}.items():
+        array = _concrete_array(value)
+        if array is None:
+            continue
+        low_ok = array >= 0 if name in zero_allowed else array > 0
+        if not np.all(np.isfinite(array) & low_ok):
+            bound = ">= 0" if name in zero_allowed else "> 0"
+            unit = "kg" if name == "mass" else "m"
+            raise ValueError(f"{what}: {name} must be finite and {bound} ({unit}), got {value!r}.")
+
+
 # ---------------------------------------------------------------------------- primitives
 # Each takes the mass (kg) and half sizes (m) as arrays and returns the part in its own
 # frame (com at the origin). Seed 001 gives full lengths; with L = 2 * half_length,
-# m L^2 / 12 = m half_length^2 / 3, which is the form used below.
+# m L^2 / 12 = m half_length^2 / 3, which is the form used below. Concrete inputs are
+# checked (_check_sizes); traced ones are not.
 
 
 def sphere(mass: Float[ArrayLike, ""], radius: Float[ArrayLike, ""]) -> MassProperties:
     """Solid sphere: ``I = 2/5 m r^2 E`` (seed 001's sphere row, printed correctly)."""
+    _check_sizes("sphere", mass, radius=radius)
     mass, radius = jnp.asarray(mass), jnp.asarray(radius)
     i = 0.4 * mass * radius**2
     return _central(mass, i, i, i)
@@ -191,6 +217,11 @@ def hollow_sphere(
     Thick shell, inner radius ``s = r - t``: ``I = 2/5 m (r^5 - s^5) / (r^3 - s^3) E``.
     Thin shell (``t = 0``): ``I = 2/3 m r^2 E``, the limit of the thick formula.
     """
+    _check_sizes("hollow_sphere", mass, ("thickness",), radius=radius, thickness=thickness)
+    r_value, t_value = _concrete_array(radius), _concrete_array(thickness)
+    if r_value is not None and t_value is not None and np.any(t_value >= r_value):
+        raise ValueError(f"hollow_sphere: the wall thickness {thickness!r} must be less than the radius {radius!r} "
+                         f"(m): thickness = radius is a solid sphere (use sphere()).")
     mass, radius = jnp.asarray(mass), jnp.asarray(radius)
     inner = radius - jnp.asarray(thickness)
     # (r^5 - s^5)/(r^3 - s^3) is 0/0 at t = 0; dividing out the common factor (r - s)
@@ -209,6 +240,7 @@ def box(mass: Float[ArrayLike, ""], half_extents: Float[ArrayLike, "3"]) -> Mass
     ``1/12 m (b^2 + c^2)`` with full lengths (depth x, height y, width z), only shows
     ``I_x``; the others follow by permutation.
     """
+    _check_sizes("box", mass, half_extents=half_extents)
     mass, half_extents = jnp.asarray(mass), jnp.asarray(half_extents)
     a2, b2, c2 = half_extents[..., 0] ** 2, half_extents[..., 1] ** 2, half_extents[..., 2] ** 2
     third = mass / 3.0
@@ -224,6 +256,7 @@ def cylinder(
     Seed 001 (axis along x, full length ``l``) shows only ``1/12 m (3 r^2 + l^2)`` for
     the transverse moments; its axial moment ``1/2 m r^2`` is missing from the row.
     """
+    _check_sizes("cylinder", mass, radius=radius, half_length=half_length)
     mass, radius, half_length = map(jnp.asarray, (mass, radius, half_length))
     transverse = mass * (0.25 * radius**2 + half_length**2 / 3.0)
     return _central(mass, transverse, transverse, 0.5 * mass * radius**2)
@@ -244,6 +277,7 @@ def elliptical_cylinder(
     ``I_z = 1/12 m (3b^2 + l^2)``, ``I_x = 1/4 m (b^2 + c^2)`` of its own axes: the axial
     moment comes last although its heading says ``I_x``.
     """
+    _check_sizes("elliptical_cylinder", mass, semi_axes=semi_axes, half_length=half_length)
     mass, semi_axes, half_length = map(jnp.asarray, (mass, semi_axes, half_length))
     a2, b2 = semi_axes[..., 0] ** 2, semi_axes[..., 1] ** 2
     length_term = half_length**2 / 3.0
@@ -267,6 +301,7 @@ def cone(
     centre of mass. The apex is ``3h/4`` from the com, so by the parallel-axis theorem
     ``3/5 m (r^2/4 + h^2) - m (3h/4)^2 = 3/20 m r^2 + 3/80 m h^2``.
     """
+    _check_sizes("cone", mass, radius=radius, height=height)
     mass, radius, height = map(jnp.asarray, (mass, radius, height))
     transverse = mass * (0.15 * radius**2 + 0.0375 * height**2)
     return _central(mass, transverse, transverse, 0.3 * mass * radius**2)
@@ -279,6 +314,7 @@ def ellipsoid(mass: Float[ArrayLike, ""], semi_axes: Float[ArrayLike, "3"]) -> M
     **semi**-axes (its labels "depth, height, width" would suggest full lengths, for
     which the factor would be 1/20).
     """
+    _check_sizes("ellipsoid", mass, semi_axes=semi_axes)
     mass, semi_axes = jnp.asarray(mass), jnp.asarray(semi_axes)
     a2, b2, c2 = semi_axes[..., 0] ** 2, semi_axes[..., 1] ** 2, semi_axes[..., 2] ** 2
     fifth = mass / 5.0
@@ -296,6 +332,7 @@ def capsule(
     ``I_z = 1/2 m_cyl r^2 + 2/5 m_caps r^2``;
     ``I_x = I_y = m_cyl (r^2/4 + h^2/3) + m_caps (2/5 r^2 - (3r/8)^2 + (h + 3r/8)^2)``.
     """
+    _check_sizes("capsule", mass, ("half_length",), radius=radius, half_length=half_length)
     mass, radius, half_length = map(jnp.asarray, (mass, radius, half_length))
     r, h = radius, half_length
     cylinder_volume = 2.0 * h * r**2  # pi dropped: only the ratio matters
@@ -318,6 +355,7 @@ def rod(mass: Float[ArrayLike, ""], half_length: Float[ArrayLike, ""]) -> MassPr
     Seed 001's row (axis along x: ``I_x = 0``, ``I_y = I_z = 1/12 m l^2``) relabelled.
     The inertia is singular, so a rod can only be a part of a body.
     """
+    _check_sizes("rod", mass, half_length=half_length)
     mass, half_length = jnp.asarray(mass), jnp.asarray(half_length)
     transverse = mass * half_length**2 / 3.0
     return _central(mass, transverse, transverse, jnp.zeros_like(transverse))
@@ -331,6 +369,7 @@ def plate(mass: Float[ArrayLike, ""], half_extents: Float[ArrayLike, "2"]) -> Ma
     width ``c`` (z), full lengths: it prints ``I_x = 1/12 m (b^2 + c^2)`` and
     ``I_z = 1/12 m b^2``; the missing ``I_y`` is ``1/12 m c^2``.
     """
+    _check_sizes("plate", mass, half_extents=half_extents)
     mass, half_extents = jnp.asarray(mass), jnp.asarray(half_extents)
     a2, b2 = half_extents[..., 0] ** 2, half_extents[..., 1] ** 2
     third = mass / 3.0
@@ -343,6 +382,7 @@ def disk(mass: Float[ArrayLike, ""], radius: Float[ArrayLike, ""]) -> MassProper
     Seed 001's thin-disk row lost one entry; the values are ``1/4 m r^2`` about a
     diameter and ``1/2 m r^2`` about the normal.
     """
+    _check_sizes("disk", mass, radius=radius)
     mass, radius = jnp.asarray(mass), jnp.asarray(radius)
     diameter = 0.25 * mass * radius**2
     return _central(mass, diameter, diameter, 2.0 * diameter)
@@ -400,8 +440,8 @@ def _check_mass_or_density(density, mass, what: str) -> None:
     # A concrete value must be positive and finite (a traced one passes): density=-1000 had
     # given a negative mass without a word.
     name, value = ("density", density) if density is not None else ("mass", mass)
-    number = _concrete_float(value) if np.ndim(value) == 0 else None
-    if number is not None and not (math.isfinite(number) and number > 0):
+    array = _concrete_array(value)  # every entry: mass=[-1.0] had passed where -1.0 did not
+    if array is not None and not np.all(np.isfinite(array) & (array > 0)):
         unit = "kg/m^3" if name == "density" else "kg"
         raise ValueError(f"{what}: {name} must be positive and finite ({unit}), got {value!r}.")
 
@@ -510,11 +550,17 @@ def compose(parts: Sequence[MassProperties]) -> MassProperties:
 
     Pose each part with :meth:`MassProperties.transformed` first. ``M = sum m_k``,
     ``com = sum m_k c_k / M`` and ``I = sum I_k + m_k (|d_k|^2 E - d_k d_k^T)`` with
-    ``d_k = c_k - com`` (parallel-axis theorem). The result is in the same frame.
+    ``d_k = c_k - com`` (parallel-axis theorem). The result is in the same frame. A part
+    may have a negative mass (a hole cut out of a solid part); the total must be positive.
     """
     if len(parts) == 0:
         raise ValueError("compose: give at least one part.")
     masses = jnp.stack([p.mass for p in parts])
+    total = _concrete_array(jnp.sum(masses, axis=0))  # None while traced
+    if total is not None and not np.all(np.isfinite(total) & (total > 0)):
+        # A part may be negative (a hole cut out of a solid), but not the whole: its com
+        # divides by the total (masses -1 and +1 gave a com of [inf, nan, nan]).
+        raise ValueError(f"compose: the parts' total mass must be finite and > 0 (kg), got {total}.")
     coms = jnp.stack([p.com for p in parts])
     inertias = jnp.stack([p.inertia for p in parts])
     return _compose(masses, coms, inertias)
@@ -809,12 +855,22 @@ def check_mass_properties(mass: ArrayLike, inertia: ArrayLike, *, name: str = "b
     symmetric, positive-definite ``(3, 3)`` matrix whose principal moments obey the
     triangle inequality ``I1 + I2 >= I3``.
     """
+    check_mass(mass, name=name)
+    check_inertia(inertia, name=name)
+
+
+def check_mass(mass: ArrayLike, *, name: str = "body") -> None:
+    """The mass half of :func:`check_mass_properties`: a finite, positive scalar (kg)."""
     m = np.asarray(mass, dtype=np.float64)
     if m.shape != ():
         raise ValueError(f"{name}: mass must be a scalar (kg), got shape {m.shape}.")
     if not np.isfinite(m) or m <= 0.0:
         raise ValueError(f"{name}: mass must be positive and finite (kg), got {float(m)}.")
 
+
+def check_inertia(inertia: ArrayLike, *, name: str = "body") -> None:
+    """The inertia half of :func:`check_mass_properties`: a finite, symmetric, positive
+    definite ``(3, 3)`` matrix (kg m^2) whose principal moments obey the triangle inequality."""
     given = np.asarray(inertia)
     i = given.astype(np.float64)
     if i.shape != (3, 3):

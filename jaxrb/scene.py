@@ -473,12 +473,15 @@ class Scene:
             # are static, so traced values take the same path as concrete ones.
             if arr.ndim in (1, 2) and arr.shape[-1:] == (3,) and arr.shape != (3, 3):
                 arr = arr[..., None] * xp.eye(3, dtype=arr.dtype).reshape((1,) * (arr.ndim - 1) + (3, 3))
-            if self.num_bodies == 3 and arr.shape == (3, 3) and xp is np and not np.allclose(arr, arr.T):
-                raise ValueError(
-                    "inertia of shape (3, 3) is read as one tensor for every body, and this one is not "
-                    "symmetric. With 3 bodies, give principal moments per body as a dict "
-                    "{name: (I1, I2, I3)} or as (3, 3, 3) tensors (np.stack([np.diag(m) for m in moments]))."
-                )
+            if self.num_bodies == 3 and arr.shape == (3, 3) and xp is np:
+                try:  # one tensor, or three bodies' principal moments (rows)?
+                    _inertia.check_inertia(arr, name="inertia")
+                except ValueError as err:
+                    raise ValueError(
+                        f"inertia of shape (3, 3) is read as one tensor for every body, and as one it is not "
+                        f"physical ({err}). With 3 bodies, give principal moments per body as a dict "
+                        "{name: (I1, I2, I3)} or as (3, 3, 3) tensors (np.stack([np.diag(m) for m in moments]))."
+                    ) from None
             inertia_arr = self._per_body("inertia", arr, (3, 3), np.eye(3), dtype)
         if gravity is None:
             g = self.gravity if self.gravity is not None else (0.0, 0.0, 0.0)
@@ -606,13 +609,15 @@ class Scene:
         """Raise ``ValueError`` if ``params`` does not fit this scene or is unphysical.
 
         Shapes always; values where they are concrete (a traced field, under jit or grad, is
-        skipped, and the others are still checked)."""
+        skipped, and the others are still checked: a concrete inertia beside a traced mass
+        too, which had gone unchecked)."""
         self.check_shapes(params)
-        if not _is_traced((params.mass, params.inertia)):
-            for i, name in enumerate(self.body_names):
-                _inertia.check_mass_properties(
-                    np.asarray(params.mass[i]), np.asarray(params.inertia[i]), name=f"Body {name!r}"
-                )
+        mass_known, inertia_known = not _is_traced(params.mass), not _is_traced(params.inertia)
+        for i, name in enumerate(self.body_names):
+            if mass_known:
+                _inertia.check_mass(np.asarray(params.mass[i]), name=f"Body {name!r}")
+            if inertia_known:
+                _inertia.check_inertia(np.asarray(params.inertia[i]), name=f"Body {name!r}")
         for field in ("linear_damping", "angular_damping"):
             if _is_traced(getattr(params, field)):
                 continue

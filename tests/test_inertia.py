@@ -1010,3 +1010,35 @@ def test_principal_axes_batched_jacobi_matches_numpy(dtype, tolerance):
     np.testing.assert_array_less(np.abs(rebuilt - matrices).max(axis=2) / scale, tolerance)
     np.testing.assert_allclose(np.linalg.det(axes), 1.0, atol=tolerance)  # rotations
     assert np.all(np.diff(moments, axis=1) >= -tolerance * scale)  # ascending
+
+
+def test_the_primitives_refuse_impossible_sizes_and_masses():
+    """The shape classes check their sizes, but the functions behind them had taken a wall
+    thicker than the radius, a negative one, negative sizes or masses, and a composition
+    of total mass 0 (com [inf, nan, nan]) without a word; mass_properties refused mass=-1.0
+    but not mass=[-1.0]. Traced values are not checked (they pass under grad and vmap)."""
+    cases = [
+        (lambda: inertia.hollow_sphere(1.0, 1.0, 1.5), "thickness 1.5 must be less than the radius"),
+        (lambda: inertia.hollow_sphere(1.0, 1.0, -0.5), "thickness must be finite and >= 0"),
+        (lambda: inertia.cone(1.0, -1.0, 2.0), "cone: radius must be finite and > 0"),
+        (lambda: inertia.sphere(-1.0, 1.0), "sphere: mass must be finite and > 0"),
+        (lambda: inertia.box(1.0, (0.1, 0.0, 0.1)), "box: half_extents must be finite and > 0"),
+        (lambda: inertia.capsule(1.0, 0.1, np.nan), "capsule: half_length must be finite and >= 0"),
+        (lambda: inertia.cylinder(1.0, jnp.array([0.1, -0.1]), 0.2), "cylinder: radius"),
+        (lambda: inertia.compose([inertia.sphere(1.0, 1.0), inertia.MassProperties(
+            jnp.asarray(-1.0), jnp.asarray([1.0, 0.0, 0.0]), jnp.eye(3))]), "total mass must be finite and > 0"),
+        (lambda: inertia.mass_properties(shapes.Sphere(0.1), mass=[-1.0]), "mass must be positive and finite"),
+    ]
+    for build, message in cases:
+        with pytest.raises(ValueError, match=message):
+            build()
+    # The limits that are bodies: a thin shell, a capsule that is a sphere, a hole cut out.
+    np.testing.assert_allclose(inertia.hollow_sphere(1.0, 1.0, 0.0).inertia[0, 0], 2.0 / 3.0, rtol=1e-6)
+    np.testing.assert_allclose(inertia.capsule(1.0, 0.1, 0.0).inertia, inertia.sphere(1.0, 0.1).inertia, rtol=1e-6)
+    core = inertia.sphere(1.0, 1.0)
+    hole = inertia.compose([inertia.sphere(8.0, 2.0), inertia.MassProperties(-core.mass, core.com, -core.inertia)])
+    np.testing.assert_allclose(hole.mass, 7.0)
+    np.testing.assert_allclose(hole.inertia[0, 0], 0.4 * (8.0 * 4.0 - 1.0), rtol=1e-6)  # a thick shell
+    # Traced sizes and masses pass the checks.
+    np.testing.assert_allclose(jax.grad(lambda r: inertia.sphere(2.0, r).inertia[0, 0])(1.0), 1.6, rtol=1e-6)
+    assert jax.vmap(lambda r: inertia.cylinder(1.0, r, 1.0).inertia[2, 2])(jnp.array([1.0, 2.0])).shape == (2,)

@@ -390,6 +390,28 @@ def test_an_asymmetric_3x3_inertia_for_three_bodies_says_how_it_was_read():
         scene.params(inertia=[[1.0, 2.0, 2.5], [1.0, 1.0, 1.0], [2.0, 2.0, 3.0]])
     moments = {"a": (1.0, 2.0, 2.5), "b": (1.0, 1.0, 1.0), "c": (2.0, 2.0, 3.0)}
     np.testing.assert_array_equal(np.asarray(scene.params(inertia=moments).inertia[0]), np.diag([1.0, 2.0, 2.5]))
+    # Three identical balls' moments, row by row: symmetric, so it had been read as one
+    # (singular) tensor and refused with advice about rods and point masses.
+    with pytest.raises(ValueError, match=r"read as one tensor.*positive definite.*\(3, 3, 3\)"):
+        scene.params(inertia=[[0.004, 0.004, 0.004]] * 3)
+    tensor = [[2.0, 0.1, 0.0], [0.1, 2.0, 0.0], [0.0, 0.0, 3.0]]  # a physical tensor is still one
+    np.testing.assert_array_equal(np.asarray(scene.params(inertia=tensor).inertia[2]), tensor)
+
+
+def test_a_concrete_inertia_is_checked_beside_a_traced_mass():
+    """check_params skipped the inertia whenever the mass was traced (a gradient in the
+    mass), so a negative-definite inertia passed."""
+    scene = rb.Scene([rb.Body("a", rb.Sphere(0.1), mass=1.0)])
+    bad = scene.params().replace(inertia=-jnp.eye(3)[None])
+
+    def check(mass):
+        scene.check_params(bad.replace(mass=mass[None]))
+        return mass
+
+    with pytest.raises(ValueError, match="positive definite"):
+        jax.grad(check)(1.0)
+    good = scene.params()
+    jax.grad(lambda m: (scene.check_params(good.replace(mass=m[None])), m)[1])(1.0)  # a traced mass alone passes
 
 
 def test_world_points_take_lists_and_check_their_shape():
