@@ -92,6 +92,10 @@ class Step(eqx.Module):
         self.scene.check_inputs(params, state)
         if self.scene.contact_pairs:
             _check_impulses(self.scene, state)
+            # The state in the integrator's carried form, as rollout prepares it (a no-op
+            # then): the contact step's branches must agree on it, and ExplicitEuler's free
+            # branch adds the rotation matrix that a state from scene.state() lacks.
+            state = self.integrator.prepare(state)
             new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
         elif derived is None:
             new = self.integrator.step(self.scene, params, state, self.dt)

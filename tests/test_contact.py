@@ -994,6 +994,21 @@ def test_an_impact_slower_than_the_threshold_is_plastic_at_an_instant(e):
         np.testing.assert_allclose(v[0] + 3.0 * v[1], speed, rtol=1e-15)
 
 
+def test_a_contact_step_called_directly_takes_a_fresh_state_with_every_integrator():
+    """``step(params, scene.state(...))``, without rollout's preparation: with ExplicitEuler
+    (which carries a rotation matrix) the contact step's two branches had disagreed on the
+    state's structure, and JAX raised "true_fn and false_fn must return the same structure"."""
+    scene = ball_scene()
+    params = scene.params(restitution=0.5)
+    step = rb.make_step(scene, rb.integrators.ExplicitEuler(), 1e-2)
+    for height in (1.0, 0.1):  # in flight, and resting on the ground
+        state = scene.state(params, position=(0, 0, height), body_angular_velocity=(0.0, 0.0, 1.0))
+        direct = step(params, state)
+        through_rollout = rb.rollout(step, params, state, 1)[0]
+        for field in ("position", "velocity", "orientation", "angular_momentum", "rotation"):
+            np.testing.assert_array_equal(getattr(direct, field), getattr(through_rollout, field))
+
+
 def test_resolve_impacts_refuses_bad_input():
     scene = ball_scene()
     params = scene.params()
