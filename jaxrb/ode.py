@@ -130,16 +130,17 @@ _PID_COEFFICIENTS: dict[type, dict[str, float]] = {
 }
 
 
-def default_controller(solver, rtol: float, atol: float) -> diffrax.PIDController:
+def default_controller(solver, rtol: float, atol: float, dtmax=None) -> diffrax.PIDController:
     """The step-size controller :func:`solve` uses when none is given (see ``_PID_COEFFICIENTS``).
 
     ``rtol`` is relative and ``atol`` absolute, in each component's own unit (m, m/s,
     kg m^2/s, and 1 for the quaternion), in diffrax's RMS norm over the whole state.
+    ``dtmax``: the longest step (s), or ``None``.
     """
     for solver_type, coefficients in _PID_COEFFICIENTS.items():
         if isinstance(solver, solver_type):
-            return diffrax.PIDController(rtol=rtol, atol=atol, **coefficients)
-    return diffrax.PIDController(rtol=rtol, atol=atol)
+            return diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax, **coefficients)
+    return diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
 
 
 class Solution(eqx.Module):
@@ -453,8 +454,25 @@ def solve_with_impacts(
     are the solver's tolerances and the root finder's, whose ``atol`` (m of gap, s of
     time) must be above the rounding of a gap: in float32 an ``atol`` of 1e-7 (under one
     ulp of a 1 m coordinate) failed to converge, so an ``atol`` under ``4 eps`` of the
-    dtype is refused. Measured in float32 with the defaults: the first six impacts of a
-    ball dropped from 1 m, e = 0.8, within 1.4e-5 s of the closed form.
+    dtype is refused. A gap's rounding grows with the coordinates and with the time (one
+    ulp of ``t`` moves a gap by its rate times it): the event divides each pair's gap by
+    its closing speed where that exceeds 1 m/s (a time to impact, s), and each segment's
+    root finder uses at least ``4 eps (max(|x|, 1 m) + |t1|)``. A float64 drop started at
+    ``t = 1e4`` s, or a float32 one from 20 m, had failed with "the maximum number of
+    steps was reached in the nonlinear solver". Measured in float32 with the defaults: the
+    first six impacts of a ball dropped from 1 m, e = 0.8, within 1.1e-5 s of the closed
+    form (1.4e-5 s before the event was scaled to a time).
+
+    Body-body pairs bound the solver's step: a gap is seen only at step ends, and free
+    flight is so smooth that the controller lengthens its steps tenfold at a time, so two
+    balls could pass through each other between two ends (the impact was found or not
+    depending on ``t1``). Each segment's steps are at most the scene's thinnest contact
+    size (the smallest radius, half extent or cylinder half-length) over the fastest
+    relative surface speed of a body-body pair at its start (linear speed plus
+    ``|L| / I_min``, a bound on ``|omega|`` along torque-free motion, times the bounding
+    radius). Relative motion under uniform gravity keeps that speed; other forces may
+    change it within a segment, and the bound does not see that. Plane pairs need no
+    bound (a body past a plane stays past it).
 
     Raises ``ValueError`` if a pair overlaps at a concrete start by more than
     ``contact.penetration_slop`` (there is no event to find from there, and no penetration
@@ -465,7 +483,8 @@ def solve_with_impacts(
     import optimistix as optx
 
     from .contact import ContactSettings
-    from .contact._step import TOUCHING, _Ctx, _pair_gaps, impact_law, layout_of
+    from .contact._penetration import thinnest_size
+    from .contact._step import TOUCHING, _bounding_radius, _Ctx, _pair_gaps, impact_law, layout_of
 
     check_inputs(scene, params, state, "rb.ode.solve_with_impacts")
     if not scene.contact_pairs:
@@ -503,11 +522,37 @@ def solve_with_impacts(
     t1 = jnp.asarray(t1, dtype)
     atol = jnp.asarray(atol, dtype)
     solver = diffrax.Tsit5() if solver is None else solver
-    controller = default_controller(solver, jnp.asarray(rtol, dtype), atol)
     field = VectorField(scene)
+    # Body-body pairs (static): their bodies and bounding radii, for the step bound below.
+    pairs = [(scene.index(a), scene.index(b), _bounding_radius(scene, a), _bounding_radius(scene, b))
+             for a, b in scene.contact_pairs if not scene.is_plane(b)]
+    reach = np.zeros(scene.num_bodies)
+    for a, b, r_a, r_b in pairs:
+        reach[a], reach[b] = r_a, r_b
+    thinnest = thinnest_size(scene) or min((min(r_a, r_b) for *_, r_a, r_b in pairs), default=1.0)
 
-    def distance(t, y):
-        return jnp.min(_pair_gaps(ctx, y.to_state(t)))
+    def segment_bounds(s: State):
+        """The segment's longest step (s; ``inf`` without body-body pairs) and its root
+        finder's ``atol``, from the state at its start. Not differentiated: they choose
+        where the solver looks, not what it computes."""
+        s = jax.lax.stop_gradient(s)
+        if pairs:
+            a, b = (np.asarray([pair[k] for pair in pairs]) for k in (0, 1))
+            smallest = jnp.linalg.eigvalsh(jax.lax.stop_gradient(params.inertia))[:, 0]
+            turning = jnp.linalg.norm(s.angular_momentum, axis=-1) / smallest * jnp.asarray(reach, dtype)
+            relative = jnp.linalg.norm(s.velocity[a] - s.velocity[b], axis=-1) + turning[a] + turning[b]
+            dtmax = thinnest / jnp.maximum(jnp.max(relative), thinnest / jnp.finfo(dtype).max)
+        else:
+            dtmax = jnp.asarray(jnp.inf, dtype)
+        size = jnp.maximum(jnp.max(jnp.abs(s.position)), 1.0)
+        return dtmax, jnp.maximum(atol, 4 * jnp.finfo(dtype).eps * (size + jnp.abs(t1)))
+
+    def gaps_at(t, y):
+        return _pair_gaps(ctx, y.to_state(t))
+
+    def gap_rates(t, y):
+        """Each pair's gap ``(P,)`` (m) and its rate along the free motion ``(P,)`` (m/s)."""
+        return jax.jvp(lambda y: _pair_gaps(ctx, y.to_state(t)), (y,), (field(t, y, params),))
 
     # diffrax fires a direction=False event on a step whose condition is > 0 at its start
     # and <= 0 at its end. After an impact located by the root finder the restart gap is
@@ -519,19 +564,24 @@ def solve_with_impacts(
     # event, and small enough to change nothing measurable. (atol, 1e-12 m, was tried: each
     # such event then lets the body fall ``depth`` further, and the 16th impact of
     # tests/test_ode_impacts.py, at 1.4e-4 m/s, rebounded 7e-4 too fast.)
+    #
+    # ``reference`` is per pair ``(P,)``: one pair's touching restart (or a start overlap
+    # within the slop) must not move the others' zero, which had let a ball falling onto
+    # the ground beside a ball resting 8e-6 m into it land 8e-6 m deep.
+    #
+    # Each pair's gap is divided by its closing speed where that exceeds 1 m/s, so the root
+    # finder's |condition| < atol reads as seconds there: one ulp of t moves a gap by the
+    # speed times it, which in metres no atol under that product could resolve.
     def condition(t, y, args, **kwargs):
         _, reference = args
+        gaps, rates = gap_rates(t, y)
+        scaled = (gaps - reference) / jnp.maximum(jnp.abs(rates), 1.0)
         # In JAX's default float type: diffrax's event root finding joins it with a Python
         # 0.0 in a cond, which failed for a float32 state with x64 switched on.
-        return (distance(t, y) - reference).astype(jnp.result_type(float))
+        return jnp.min(scaled).astype(jnp.result_type(float))
 
-    event = diffrax.Event(condition, root_finder=optx.Newton(rtol=rtol, atol=atol), direction=False)
     term = diffrax.ODETerm(lambda t, y, args: field(t, y, args[0]))
     eps = jnp.finfo(dtype).eps
-
-    def gap_rates(t, y):
-        """Each pair's gap ``(P,)`` (m) and its rate along the free motion ``(P,)`` (m/s)."""
-        return jax.jvp(lambda y: _pair_gaps(ctx, y.to_state(t)), (y,), (field(t, y, params),))
 
     def impulse(s: State) -> State:
         y = OdeState.from_state(s)
@@ -551,9 +601,12 @@ def solve_with_impacts(
 
         def advance(current):
             y0 = OdeState.from_state(current)
-            start_gap = distance(current.time, y0)
+            start_gaps = gaps_at(current.time, y0)
             depth = 16 * eps * jnp.maximum(jnp.max(jnp.abs(current.position)), 1.0)
-            reference = jnp.where(start_gap > 0, 0.0, start_gap - depth)
+            reference = jnp.where(start_gaps > 0, 0.0, start_gaps - depth)
+            dtmax, gap_atol = segment_bounds(current)
+            controller = default_controller(solver, jnp.asarray(rtol, dtype), atol, dtmax=dtmax)
+            event = diffrax.Event(condition, root_finder=optx.Newton(rtol=rtol, atol=gap_atol), direction=False)
             sol = diffrax.diffeqsolve(term, solver, t0=current.time, t1=t1, dt0=None,
                                       y0=y0, args=(params, reference),
                                       saveat=diffrax.SaveAt(t1=True), stepsize_controller=controller,
