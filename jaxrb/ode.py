@@ -410,7 +410,8 @@ class ImpactSolution(eqx.Module):
             ``max_impacts`` impacts happen before ``t1``).
         impact_times: ``(max_impacts,)`` s, the located impacts (``inf`` after the last).
         after_impact: a :class:`jaxrb.State` with a leading ``(max_impacts,)`` axis: the
-            state just after each impact (rows past ``num_impacts`` repeat the last state).
+            state just after each impact (rows past ``num_impacts`` hold ``final``, the
+            state at ``t1``).
         num_impacts: ``()`` int, how many impacts were located before ``t1``.
     """
 
