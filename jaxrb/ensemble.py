@@ -36,14 +36,16 @@ def shard_ensemble(tree: Any, devices: Sequence[jax.Device] | None = None) -> An
         tree: a pytree of arrays that all have the same leading ensemble axis ``E``,
             e.g. batched :class:`jaxrb.Params` and :class:`jaxrb.State`. ``None``
             leaves are kept.
-        devices: the devices to use; default ``jax.devices()`` (all of them). ``E``
-            must be a multiple of their number.
+        devices: the devices to use (a sequence, or one device); default
+            ``jax.devices()`` (all of them). ``E`` must be a multiple of their number.
 
     Returns:
         The same pytree, with each array split along axis 0 into ``len(devices)``
         equal blocks, one per device. Values are unchanged; ``jax.jit(jax.vmap(f))``
         applied to it runs on all the devices and returns sharded results.
     """
+    if isinstance(devices, jax.Device):  # one device given bare: 'Device' object is not iterable
+        devices = [devices]
     devices = list(jax.devices() if devices is None else devices)
     if not devices:
         raise ValueError("shard_ensemble needs at least one device.")

@@ -73,6 +73,8 @@ def test_shard_ensemble_refuses_unbatched_or_uneven_input():
         rb.shard_ensemble(batched, devices=fake_devices)
     placed = rb.shard_ensemble(batched)
     assert jnp.array_equal(placed.position, batched.position)
+    one = rb.shard_ensemble(batched, devices=jax.devices()[0])  # a bare device had raised a TypeError
+    assert jnp.array_equal(one.position, batched.position)
 
 
 # ------------------------------------------------------------------ branches in ensembles
