@@ -130,6 +130,16 @@ _PID_COEFFICIENTS: dict[type, dict[str, float]] = {
 }
 
 
+def _checked_solver(solver):
+    """``solver``, or Tsit5 for ``None``; a string or a class had failed inside diffrax."""
+    if solver is None:
+        return diffrax.Tsit5()
+    if not isinstance(solver, diffrax.AbstractSolver):
+        raise ValueError(f"solver must be a diffrax solver instance, e.g. diffrax.Tsit5() or diffrax.Dopri8(), "
+                         f"got {solver!r}.")
+    return solver
+
+
 def default_controller(solver, rtol: float, atol: float, dtmax=None) -> diffrax.PIDController:
     """The step-size controller :func:`solve` uses when none is given (see ``_PID_COEFFICIENTS``).
 
@@ -365,7 +375,7 @@ def solve(
     t1 = jnp.asarray(t1, dtype=dtype)
     ts = None if ts is None else jnp.asarray(ts, dtype=dtype)
 
-    solver = diffrax.Tsit5() if solver is None else solver
+    solver = _checked_solver(solver)
     if controller is None:
         # Arrays, not Python floats: a float would be a static argument of diffrax's jit,
         # and every new tolerance would recompile.
@@ -522,7 +532,7 @@ def solve_with_impacts(
                          "and has no penetration correction. Start the bodies apart, or use rb.make_step.")
     t1 = jnp.asarray(t1, dtype)
     atol = jnp.asarray(atol, dtype)
-    solver = diffrax.Tsit5() if solver is None else solver
+    solver = _checked_solver(solver)
     field = VectorField(scene)
     # Body-body pairs (static): their bodies and bounding radii, for the step bound below.
     pairs = [(scene.index(a), scene.index(b), _bounding_radius(scene, a), _bounding_radius(scene, b))

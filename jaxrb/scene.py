@@ -29,6 +29,15 @@ __all__ = ["Body", "Scene", "GROUND"]
 GROUND = "ground"
 
 
+def _numbers(what: str, value) -> np.ndarray:
+    """``value`` as a float array, or a ValueError that names the input (NumPy's own says
+    only "could not convert string to float")."""
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be numbers (a number, a sequence or an array), got {value!r}.") from None
+
+
 def _is_traced(x: Any) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(x))
 
@@ -89,6 +98,9 @@ class Body:
 
     def _resolve(self):
         where = f"Body {self.name!r}"
+        for field in ("mass", "density", "inertia"):
+            if getattr(self, field) is not None:
+                _numbers(f"{where}: {field}", getattr(self, field))
         if self.mass_properties is not None:
             if self.mass is not None or self.density is not None or self.inertia is not None:
                 raise ValueError(
@@ -180,6 +192,8 @@ class Scene:
     walls: Mapping[str, Plane] = ()
 
     def __post_init__(self):
+        if isinstance(self.bodies, Body):
+            raise ValueError("Scene.bodies must be a list of rb.Body objects; got one Body: write bodies=[body].")
         bodies = tuple(self.bodies)
         if not bodies:
             raise ValueError("Scene needs at least one body.")
@@ -198,6 +212,8 @@ class Scene:
                     f"Scene.gravity must be a finite 3-vector in m/s^2 (or None), got {self.gravity!r}."
                 )
             object.__setattr__(self, "gravity", tuple(g.tolist()))
+        if isinstance(self.forces, ForceModel):
+            raise ValueError(f"Scene.forces must be a list of force models; got one: write forces=[{self.forces!r}].")
         forces = tuple(self.forces)
         for f in forces:
             if not isinstance(f, ForceModel):
@@ -365,7 +381,7 @@ class Scene:
             out = jnp.asarray(np.broadcast_to(default, (n, *trailing)), dtype=dtype)
             for name, v in value.items():
                 index = self.index(name)
-                v = jnp.asarray(v, dtype=dtype) if _is_traced(v) else np.asarray(v, dtype=float)
+                v = jnp.asarray(v, dtype=dtype) if _is_traced(v) else _numbers(f"{what}[{name!r}]", v)
                 if v.shape != trailing:
                     raise ValueError(f"{what}[{name!r}] must have shape {trailing}, got {v.shape}.")
                 if isinstance(v, np.ndarray) and not np.all(np.isfinite(v)):
@@ -377,7 +393,7 @@ class Scene:
             if arr.shape not in (trailing, (n, *trailing)):
                 raise ValueError(f"{what} must have shape {trailing} or ({n}, *{trailing}), got {arr.shape}.")
             return jnp.broadcast_to(arr, (n, *trailing))
-        arr = np.asarray(value, dtype=float)
+        arr = _numbers(what, value)
         if arr.shape == trailing:
             arr = np.broadcast_to(arr, (n, *trailing))
         if arr.shape != (n, *trailing):
@@ -564,6 +580,8 @@ class Scene:
     def check_shapes(self, params: Params, fields=None) -> None:
         """Raise ``ValueError`` if a field of ``params`` (all, or those named) has the wrong
         shape for this scene. Shapes only, so it also works on traced values."""
+        if not isinstance(params, Params):
+            raise ValueError(f"params must be an rb.Params (scene.params(...)), got {type(params).__name__}.")
         n = self.num_bodies
         p = self.num_contact_pairs
         expected = {"mass": (n,), "inertia": (n, 3, 3), "gravity": (3,),
@@ -582,6 +600,8 @@ class Scene:
     def check_state_shapes(self, state: State) -> None:
         """Raise ``ValueError`` if a field of ``state`` has the wrong shape for this scene.
         Shapes only, so it also works on traced values (and per member under vmap)."""
+        if not isinstance(state, State):
+            raise ValueError(f"state must be an rb.State (scene.state(params, ...)), got {type(state).__name__}.")
         n = self.num_bodies
         expected = {"position": (n, 3), "orientation": (n, 4), "velocity": (n, 3),
                     "angular_momentum": (n, 3), "time": (), "rotation": (n, 3, 3)}

@@ -576,3 +576,31 @@ def test_small_input_mistakes_are_explained():
     with pytest.raises(ValueError, match=r"Params.mass has shape \(2,\)"):
         rb.identify.FreeParameters(scene, scene_of(BALL, rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)).params(),
                                    "mass")
+
+
+def test_inputs_of_the_wrong_kind_get_a_value_error_that_names_them():
+    """A Body or a force model not in a list, None for params or state, a solver given by
+    name and a string for a number had raised TypeError, AttributeError, or NumPy's "could
+    not convert string to float" that names no input."""
+    body = rb.Body("b", shape=rb.Sphere(0.1), mass=1.0)
+    with pytest.raises(ValueError, match=r"got one Body: write bodies=\[body\]"):
+        rb.Scene(body)
+    with pytest.raises(ValueError, match="forces must be a list of force models"):
+        rb.Scene([body], forces=rb.LinearDamping())
+    scene = rb.Scene([body])
+    params = scene.params()
+    state = scene.state(params)
+    step = rb.make_step(scene, rb.integrators.RK4(), 1e-2)
+    with pytest.raises(ValueError, match=r"params must be an rb.Params \(scene.params"):
+        rb.rollout(step, None, state, 10)
+    with pytest.raises(ValueError, match=r"state must be an rb.State \(scene.state"):
+        step(params, None)
+    with pytest.raises(ValueError, match=r"solver must be a diffrax solver instance, e.g. diffrax.Tsit5\(\)"):
+        rb.ode.solve(scene, params, state, 1.0, solver="tsit5")
+    for build, name in ((lambda: rb.Body("b", shape=rb.Sphere(0.1), mass="x"), "Body 'b': mass"),
+                        (lambda: rb.Body("b", mass=1.0, inertia=["a", "b", "c"]), "Body 'b': inertia"),
+                        (lambda: scene.params(mass="x"), "mass"),
+                        (lambda: scene.state(params, position="abc"), "position"),
+                        (lambda: scene.state(params, velocity={"b": "x"}), r"velocity\['b'\]")):
+        with pytest.raises(ValueError, match=name + " must be numbers"):
+            build()
