@@ -256,6 +256,24 @@ def test_implicit_midpoint_keeps_the_energy_where_its_equation_has_no_root(omega
     assert 0.5 < np.mean(np.all(first, axis=1)) < 1.0  # most steps converge, and equal bitwise
 
 
+def test_implicit_midpoint_keeps_turning_where_its_full_step_has_no_root():
+    """A body whose full step fails takes four exact steps of h / 4. It had turned by its
+    last converged stage instead, none with stages=1: its body momentum did not change, the
+    next step failed the same way, and the top (moments 1, 2, 3) stopped turning for good
+    at |w| h = 6 while keeping its momentum and energy. Now it turns at every step, with
+    its energy and world momentum kept."""
+    direction = np.array([-0.3, 0.9, -0.5]) / np.linalg.norm([-0.3, 0.9, -0.5])
+    for omega_h in (6.0, 30.0):
+        scene, params, state = top((1.0, 2.0, 3.0), direction * omega_h)
+        traj = trajectory(scene, rb.integrators.ImplicitMidpoint(), params, state, 1.0, 50)
+        q = np.asarray(traj.orientation[:, 0])
+        assert np.all(np.any(q[1:] != q[:-1], axis=1)), omega_h  # every step turns
+        e = np.asarray(jax.vmap(rb.kinetic_energy, in_axes=(None, 0))(params, traj))[:, 0]
+        np.testing.assert_allclose(e, e[0], rtol=1e-11)
+        momentum = np.asarray(traj.angular_momentum[:, 0])
+        np.testing.assert_allclose(momentum, np.broadcast_to(momentum[0], momentum.shape), rtol=1e-12)
+
+
 def test_a_single_newton_step_can_multiply_the_energy():
     """The linearised gyroscopic step of MuJoCo and Bullet (one Newton iteration)."""
     moments = (2.49099822, 2.2632503, 0.46776277)  # a flat body, found by random search
