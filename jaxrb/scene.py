@@ -559,6 +559,9 @@ class Scene:
         for key in per_pair:
             if key not in pairs and key[::-1] not in pairs:
                 raise ValueError(f"{what}: {key!r} is not a contact pair of this scene; pairs are {list(pairs)}.")
+            if key[::-1] in per_pair and key[0] != key[1]:  # one of the two had been dropped without a word
+                raise ValueError(f"{what}: the pair {key!r} is given twice, as {key!r} and {key[::-1]!r}; "
+                                 f"give it once.")
         out = []
         for a, b in pairs:
             if (a, b) in per_pair or (b, a) in per_pair:

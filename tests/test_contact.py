@@ -360,7 +360,14 @@ def test_coefficients_of_the_wrong_shape_are_refused_by_the_step():
      ({"time_of_impact": "no"}, "time_of_impact must be True or False"), ({"tolerance": -1e-6}, ">= 0"),
      ({"restitution_threshold": True}, ">= 0"), ({"iterations": 5.0}, "positive integer"),
      ({"located_impacts": 0}, "located_impacts must be a positive integer"),
-     ({"skin": -1e-6}, "skin must be a number >= 0"), ({"skin": float("nan")}, "skin must be a number >= 0")],
+     ({"skin": -1e-6}, "skin must be a number >= 0"), ({"skin": float("nan")}, "skin must be a number >= 0"),
+     # Found by stop 88's review: at margin = 0 a touching ball passed through the ground,
+     # and options that a setting makes unused were accepted and ignored.
+     ({"margin": 0.0}, r"margin must be at least 0.0001 m \(the touching distance"),
+     ({"margin": 1e-4, "penetration_slop": 1e-4}, "margin must be at least 0.0002 m"),
+     ({"newton_iterations": 3}, "newton_iterations=3 would be ignored with solver='pgs'"),
+     ({"time_of_impact": False, "located_impacts": 1}, "located_impacts=1 would be ignored with time_of_impact"),
+     ({"time_of_impact": False, "toi_iterations": 3}, "toi_iterations=3 would be ignored with time_of_impact")],
 )
 def test_bad_contact_settings_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -383,6 +390,15 @@ def test_contact_settings_take_integers_of_any_type_and_contacts_none_means_none
     assert rb.Scene([ball], contacts=None).contact_pairs == ()
     with pytest.raises(ValueError, match="no ground"):
         rb.Scene([ball, rb.Body("b", shape=BOX, mass=1.0)], contacts="all").params(restitution={"ground": 0.5})
+    # Real-valued options are stored as floats (a Fraction passed and failed inside the step),
+    # and the exact solver keeps its own Newton steps.
+    from fractions import Fraction
+    settings = rb.ContactSettings(margin=Fraction(1, 4), restitution_threshold=Fraction(1, 4))
+    assert type(settings.margin) is float and settings.restitution_threshold == 0.25
+    assert rb.ContactSettings(solver="exact", newton_iterations=3).newton_iterations == 3
+    # A pair given twice, in both orders, had been read from one of them without a word.
+    with pytest.raises(ValueError, match="is given twice"):
+        ball_scene().params(restitution={("ball", "ground"): 0.8, ("ground", "ball"): 0.2})
 
 
 def test_a_scene_without_contacts_compiles_no_contact_code():

@@ -19,6 +19,8 @@ DEFAULT_MARGIN_SPEED = 10.0
 #: tilt of 1e-8 rad: a normal force leaning by that moves a frictionless box on another
 #: by 0.02 mm in 2 s under a 100:1 load (an acceleration of 1e-8 g times the mass ratio).
 LEVEL_TOLERANCE = 1e-9
+#: m; slots this close count as touching for the impact law at the time of impact.
+TOUCHING = 1e-4
 
 
 def _check(name: str, value, *, integer: bool = False, positive: bool = False, unit: bool = False):
@@ -63,7 +65,8 @@ class ContactSettings:
         impact_iterations: sweeps of sequential collisions per impact; momentum crosses
             one contact per sweep in the worst slot order (a row of ``n`` touching balls
             needs ``n - 1``).
-        newton_iterations: ``"exact"`` only: Newton steps per normal solve.
+        newton_iterations: ``"exact"`` only: Newton steps per normal solve (a value other
+            than the default with ``"pgs"`` is refused: it would be ignored).
         warm_start: start each step's solve from the previous step's impulses (kept in
             ``State.contact_impulse``).
         restitution_threshold: m/s. Impacts slower than this are plastic (``e = 0``), so a
@@ -78,10 +81,14 @@ class ContactSettings:
             touches at its start (within 0.1 mm, or twice ``penetration_slop``) or closes
             during its free flight; without it, wherever a pair is within the margin, which
             must then exceed the largest approach speed times ``dt``. Default ``None``:
-            ``0.01 m + (10 m/s) dt``.
+            ``0.01 m + (10 m/s) dt``. At least the touching distance (0.1 mm, or twice
+            ``penetration_slop``): the narrow phase reports slots within the margin only,
+            and with ``margin=0`` a touching ball had passed through the ground.
         time_of_impact: locate the first new impact inside each step: advance to it,
             apply the impulse, finish the step. Bounce heights then do not depend on ``dt``.
-        toi_iterations: root-finding iterations for the time of impact.
+        toi_iterations: root-finding iterations for the time of impact (with
+            ``time_of_impact`` only, as ``located_impacts``: another value without it is
+            refused, since it would be ignored).
         located_impacts: with ``time_of_impact``, the impacts located inside one step, the
             earliest first; the step is split at each (at most ``located_impacts + 1``
             parts). A later impact in the same step is applied at the instant of the last
@@ -102,8 +109,9 @@ class ContactSettings:
         position_correction: fraction of the penetration (beyond ``correction_slop``)
             removed per step. The correction moves positions only, never velocities, so it
             adds no kinetic energy (split impulse; not Baumgarte on velocity).
-        penetration_slop: m, penetration left alone by the time-of-impact search and the
-            impact pass (keeps resting contacts in contact).
+        penetration_slop: m, penetration left alone by the time-of-impact search (keeps
+            resting contacts in contact); a pair within twice it (or 0.1 mm) at a step's
+            start touches.
         skin: m. In the resting solve, a slot whose gap is under ``skin`` counts as touching
             (target ``u_n >= 0``: it may not approach); beyond it the speculative target is
             ``-(gap - skin)/h``, so a body arriving comes to rest ``skin`` above the surface.
@@ -160,16 +168,31 @@ class ContactSettings:
                      "position_iterations"):
             _check(name, getattr(self, name), integer=True, positive=True)
             object.__setattr__(self, name, int(getattr(self, name)))  # np.int64(8) too: a static loop length
-        for name in ("restitution_threshold", "penetration_slop", "correction_slop"):
-            _check(name, getattr(self, name))
-        for name in ("margin", "skin"):
-            if getattr(self, name) is not None:
-                _check(name, getattr(self, name))
-        if self.tolerance is not None:
-            _check("tolerance", self.tolerance)
-        _check("position_correction", self.position_correction, unit=True)
+        for name in ("restitution_threshold", "penetration_slop", "correction_slop", "margin", "skin", "tolerance",
+                     "position_correction"):
+            value = getattr(self, name)
+            if value is None and name in ("margin", "skin", "tolerance"):
+                continue
+            _check(name, value, unit=name == "position_correction")
+            # As a Python float: a Fraction passed the check and failed inside the step.
+            object.__setattr__(self, name, float(value))
         for name in ("warm_start", "time_of_impact"):  # np.True_ too, stored as a Python bool
             object.__setattr__(self, name, static_switch(f"ContactSettings.{name}", getattr(self, name)))
+        floor = max(TOUCHING, 2.0 * self.penetration_slop)
+        if self.margin is not None and self.margin < floor:
+            # The narrow phase reports a slot only within the margin, and the impact law
+            # takes slots within TOUCHING as touching: at margin = 0 a touching ball passed
+            # through the ground, and a dropped one sank 2 cm into it.
+            raise ValueError(f"ContactSettings.margin must be at least {floor:g} m (the touching distance, "
+                             f"max(1e-4, 2 penetration_slop)), got {self.margin!r}.")
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        unused = [("newton_iterations", "solver='pgs'")] if self.solver == "pgs" else []
+        if not self.time_of_impact:
+            unused += [(name, "time_of_impact=False") for name in ("toi_iterations", "located_impacts")]
+        for name, why in unused:
+            if getattr(self, name) != defaults[name]:
+                raise ValueError(f"ContactSettings.{name}={getattr(self, name)!r} would be ignored with {why}: "
+                                 f"leave it at its default ({defaults[name]!r}).")
 
     def tolerance_for(self, dtype) -> float:
         """The sweeps' relative tolerance for states of ``dtype``."""

@@ -306,7 +306,8 @@ def _impact(k, u, e, mu):
     (:mod:`._coulomb`). It is cut where it would give back more kinetic energy than
     compression took, so no impact with ``e <= 1`` gains energy. Each phase is one
     implicit step: exact where the contact sticks at the phase's end or slides one way
-    throughout it (``u_n' = -e u_n`` then, as Newton's law has it)."""
+    throughout it (``u_n' = -e u_n`` then, as Newton's law has it, where it also arrives
+    without slip; where friction stops an arriving slip, Poisson's rebound differs)."""
     # Both phases from one program (a traced flag per phase), as in _pair_impact, so the
     # step holds one Coulomb solve here instead of two.
     def phase(carry, restitution):
@@ -467,8 +468,9 @@ def _pair_impact(c: _Colour, k_slot, pair, e, mu, on):
        own bound too early: a box landing on an edge, sticking at e = 1, left at 2.995 m/s
        instead of 3.0 after 16 passes).
 
-    For a pair touching at one slot one pass of 2 and 3 is exact: a contact that sticks,
-    or slides one way, leaves at ``u_n' = -e u_n`` (a rod landing on its end,
+    For a pair touching at one slot one pass of 2 and 3 is exact: a contact that sticks
+    throughout (arriving without slip), or slides one way, leaves at ``u_n' = -e u_n`` (a
+    rod landing on its end,
     ``test_friction_keeps_the_rebound_of_an_off_centre_impact``). Until 2026-11-29 friction
     came after restitution, from the frictionless normal impulses, and changed ``u_n``
     through ``K_tn``: that rod left at 0.845 m/s instead of 3.0 (e = 1, mu = 10), keeping
@@ -582,8 +584,9 @@ def collisions(bodies: Bodies, f: Frames, colours, pair_colours, e, mu, eligible
     rather than being shared by a simultaneous solve. Each collision follows Poisson's
     hypothesis with Coulomb friction: compression to ``u_n = 0``, then ``e`` times its
     normal impulse, friction acting in both phases (:func:`_impact`). Without friction, or
-    where the contact sticks or slides one way, the contact leaves at ``u_n' = -e u_n``
-    (Newton's law), with the seed's impulse ``j = -(1 + e) u_n / (n . K n)`` where there is
+    where the contact sticks throughout (arriving without slip) or slides one way, the
+    contact leaves at ``u_n' = -e u_n`` (Newton's law; where friction stops an arriving
+    slip, Poisson's rebound differs), with the seed's impulse ``j = -(1 + e) u_n / (n . K n)`` where there is
     no friction. A pair of several slots collides on all its touching slots at once
     (:func:`_pair_impact`): colliding them one by one, a box landing flat on four corners
     at 3 m/s (e = 0.8) rebounded at 2.10 m/s instead of 2.40, spinning, and one dropped flat

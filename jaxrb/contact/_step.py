@@ -81,7 +81,7 @@ from ._layout import (
     with_pair_slots,
 )
 from ._lcp import solve_exact
-from ._settings import ContactSettings
+from ._settings import TOUCHING, ContactSettings
 from ._solver import (
     SAVE_NAMED,
     SEPARATIONS,
@@ -98,8 +98,6 @@ from ._solver import (
 __all__ = ["contact_step", "far_from_contact", "free_step", "layout_of", "free_scene_of", "initial_impulses",
            "resolve_impacts"]
 
-#: m; slots this close count as touching for the impact law at the time of impact.
-TOUCHING = 1e-4
 
 
 def _touching_distance(settings: ContactSettings, margin: float) -> float:
