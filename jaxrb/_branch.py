@@ -139,8 +139,9 @@ def branch(pred, true_fn: Callable, false_fn: Callable, *operands, recompute_in_
         p_batched, ops_batched, consts_batched = in_batched
         ops = jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), ops, ops_batched)
         const_axes = jax.tree.map(lambda b: 0 if b else None, consts_batched)
-        yes = jax.vmap(lambda o, c: run_branch(True, o, c), in_axes=(0, const_axes))
-        no = jax.vmap(lambda o, c: run_branch(False, o, c), in_axes=(0, const_axes))
+        # axis_size: with no array operand (None) and unbatched consts, vmap had no axis to read.
+        yes = jax.vmap(lambda o, c: run_branch(True, o, c), in_axes=(0, const_axes), axis_size=axis_size)
+        no = jax.vmap(lambda o, c: run_branch(False, o, c), in_axes=(0, const_axes), axis_size=axis_size)
         if not p_batched:
             out = jax.lax.cond(p, yes, no, ops, consts)
         else:
@@ -216,6 +217,8 @@ def _joined(a: jax.ShapeDtypeStruct, b: jax.ShapeDtypeStruct) -> jax.ShapeDtypeS
 
 def _as(x, like: jax.ShapeDtypeStruct):
     """``x`` with the joined output's type."""
+    if not hasattr(x, "dtype"):  # a Python literal a branch returned (a constant True)
+        return jnp.asarray(x, like.dtype)
     if x.dtype != like.dtype or (jax.typeof(x).weak_type and not like.weak_type):
         return jax.lax.convert_element_type(x, like.dtype)
     return x
@@ -254,8 +257,10 @@ def member_cond(pred, true_fn: Callable, false_fn: Callable, *operands, per_memb
     """``lax.cond(pred, true_fn, false_fn, *operands)`` as :func:`member_switch` runs a switch."""
     if not (_per_member(pred) if per_member is None else per_member):
         return jax.lax.cond(pred, true_fn, false_fn, *operands)
-    return _per_member_switch(jnp.asarray(pred).astype(jnp.int32), [false_fn, true_fn], *operands,
-                              tangents_from=tangents_from)
+    pred = jnp.asarray(pred)
+    # As lax.cond reads it: any nonzero pred is true (astype clipped -1 and 0.5 to the false branch).
+    index = pred.astype(jnp.int32) if pred.dtype == jnp.bool_ else (pred != 0).astype(jnp.int32)
+    return _per_member_switch(index, [false_fn, true_fn], *operands, tangents_from=tangents_from)
 
 
 def _per_member(index) -> bool:
@@ -275,7 +280,7 @@ def _per_member_switch(index, branches, *operands, tangents_from: int | None = N
             return operands
         takes = index == k
         return (*operands[:tangents_from], *jax.tree.map(
-            lambda t: t if t.dtype == jax.dtypes.float0 else jnp.where(takes, t, jnp.zeros_like(t)),
+            lambda t: t if jnp.result_type(t) == jax.dtypes.float0 else jnp.where(takes, t, jnp.zeros_like(t)),
             operands[tangents_from:]))
 
     outs = [jax.lax.cond(_any_member(index == k), fn, idle, *seen_by(k)) for k, fn in enumerate(branches)]

@@ -106,6 +106,34 @@ def _counted_cond(calls, recompute_in_reverse=False):
     return f
 
 
+def test_branch_agrees_with_cond_on_the_edge_cases_a_review_found():
+    """Each had differed from lax.cond (stop 88's review): no array operand under vmap
+    (ValueError), a non-bool pred in the per-member form (-1 took the false branch), a
+    branch returning a Python True (AttributeError), Python-scalar tangents (AttributeError)."""
+    from jaxrb._branch import branch, members_differentiated
+
+    pred, a = jnp.array([True, False, True]), jnp.array([1.0, 2.0])
+    for operand in ((), (None,)):
+        def run(cond, q, operand=operand):
+            return cond(q, lambda *_: a * 2, lambda *_: a - 1, *operand)
+
+        np.testing.assert_array_equal(jax.vmap(lambda q: run(branch, q))(pred),
+                                      jax.vmap(lambda q: run(jax.lax.cond, q))(pred))
+    x, q = jnp.array([3.0, 2.0]), jnp.array([-1, 0])
+    for transform in (lambda f: jax.vmap(f), lambda f: jax.vmap(jax.grad(f, 1))):
+        results = [transform(lambda q, o, c=c: c(q, lambda o: o**2, lambda o: o * 2, o))(q, x)
+                   for c in (branch, jax.lax.cond)]
+        np.testing.assert_array_equal(*results)
+    with members_differentiated():
+        np.testing.assert_allclose(jax.grad(lambda o: branch(jnp.float32(0.5), jnp.sin, jnp.cos, o))(1.0), np.cos(1.0))
+        np.testing.assert_allclose(jax.jvp(lambda y: branch(True, lambda y: 2.0 * y, lambda y: 3.0 * y, y),
+                                           (1.0,), (1.0,))[1], 2.0)
+    assert bool(branch(jnp.bool_(True), lambda o: True, lambda o: o > 0, jnp.float32(1.0)))
+    tangents = jax.jvp(lambda y: jax.vmap(lambda p: branch(p, lambda y: 2.0 * y, lambda y: 3.0 * y, y))(pred),
+                       (1.0,), (1.0,))[1]
+    np.testing.assert_array_equal(tangents, [2.0, 3.0, 2.0])
+
+
 def test_branch_matches_cond_per_member_and_skips_a_branch_no_member_takes():
     calls = []
     f = _counted_cond(calls)
