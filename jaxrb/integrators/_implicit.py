@@ -255,16 +255,15 @@ def midpoint_free_rotation(
         return spatial.quat_normalize(spatial.quat_multiply(q, cayley_quat(accepted_h * w_mid))), converged
 
     inverse_inertia = inverse_inertia_body(params)
-    turned, converged = jax.vmap(rotate, in_axes=(0, 0, 0, None, None))(inverse_inertia, orientation,
-                                                                        angular_momentum, dt, stages)
+    every_body = jax.vmap(rotate, in_axes=(0, 0, 0, None, None))
+    turned, converged = every_body(inverse_inertia, orientation, angular_momentum, dt, stages)
     if not safeguard:
         return turned
 
     def substeps(turned):
         q = orientation
         for _ in range(FALLBACK_SUBSTEPS):
-            q = jax.vmap(rotate, in_axes=(0, 0, 0, None, None))(inverse_inertia, q, angular_momentum,
-                                                                dt / FALLBACK_SUBSTEPS, max(stages, 3))[0]
+            q = every_body(inverse_inertia, q, angular_momentum, dt / FALLBACK_SUBSTEPS, max(stages, 3))[0]
         return jnp.where(converged[:, None], turned, q)
 
     return branch(jnp.any(~converged), substeps, lambda turned: turned, turned)
