@@ -505,7 +505,8 @@ def test_params_and_state_must_fit_the_scene_and_each_other():
 
 def test_integrator_and_ode_switches_and_limits():
     """Static switches elsewhere take True or False too ("no" had switched Gram-Schmidt, the
-    safeguard and dense output on); solve_with_impacts checks rtol, atol and max_steps as
+    safeguard and dense output on); solve refuses an adjoint that is not diffrax's (a
+    string had failed deep inside diffrax); solve_with_impacts checks rtol, atol and max_steps as
     solve does (rtol=-1 was accepted, atol=0 failed at run time in a callback, max_steps=0
     inside diffrax); max_steps of any integer type; Solution.evaluate refuses concrete
     times outside the solve (NaN states had come back)."""
@@ -520,6 +521,8 @@ def test_integrator_and_ode_switches_and_limits():
     for name in ("dense", "step_to_ts", "throw"):
         with pytest.raises(ValueError, match=f"{name} must be True or False"):
             rb.ode.solve(box, params, state, 2.0, **{name: "no"})
+    with pytest.raises(ValueError, match="adjoint must be a diffrax adjoint instance"):
+        rb.ode.solve(box, params, state, 2.0, adjoint="forward")
     solution = rb.ode.solve(box, params, state, 2.0, dense=np.bool_(True), max_steps=np.int64(100))
     np.testing.assert_allclose(solution.evaluate(jnp.array([1.0, 1.5, 2.0])).position[:, 0, 0], [0.0, 0.5, 1.0],
                                atol=1e-12)
