@@ -7,6 +7,7 @@
 | :class:`ImplicitGyroscopic` | 1 | nothing; energy and ``|L|`` never increase | 1 (+ Newton) |
 | :class:`ImplicitMidpoint` | 2 | ``L`` exactly, energy to solver tolerance | 2 (+ Newton) |
 | :class:`SymplecticSplitting` | 2 | ``L`` exactly, energy error bounded | 2 |
+| :class:`SymmetricTopSplitting` | 2 | ``L`` exactly, energy error bounded (exact for symmetric tops) | 2 |
 | :class:`RK4` | 4 | ``L`` exactly | 4 |
 | :class:`RKMK4` | 4 | ``L`` exactly, ``|q| = 1`` | 4 |
 
@@ -21,6 +22,7 @@ from ._implicit import ImplicitMidpoint as ImplicitMidpoint
 from ._lie_group import RKMK4 as RKMK4
 from ._runge_kutta import RK4 as RK4
 from ._splitting import SymplecticSplitting as SymplecticSplitting
+from ._symmetric_top import SymmetricTopSplitting as SymmetricTopSplitting
 
 __all__ = [
     "Integrator",
@@ -29,6 +31,7 @@ __all__ = [
     "ImplicitGyroscopic",
     "ImplicitMidpoint",
     "SymplecticSplitting",
+    "SymmetricTopSplitting",
     "RK4",
     "RKMK4",
 ]

@@ -101,6 +101,24 @@ def _axes(value):
     return value
 
 
+def principal_frames(params: Params):
+    """Inverse principal moments ``(N, 3)`` (1/(kg m^2), the moments in ascending order),
+    principal-to-body quaternions ``(N, 4)``, and the off-diagonal inverse inertia in the
+    principal frame at repeated moments ``(N, 3, 3)`` (zero in value; see
+    :func:`jaxrb.inertia.repeated_moment_coupling`).
+
+    Inverted here, once per rollout (the splittings' ``precompute``): a step then multiplies.
+    Divided in the step, reverse mode recomputed the three quotients (and their derivatives)
+    at every step, which XLA did not hoist out of the backward loop: 3 kernels a step of the
+    ball's gradient.
+    """
+    moments, axes_matrix = jax.vmap(principal_axes)(params.inertia)
+    inverse = 1.0 / moments
+    # (L + C)^-1 = L^-1 - L^-1 C L^-1 to first order in the coupling C, which is zero.
+    coupling = -inverse[:, :, None] * jax.vmap(repeated_moment_coupling)(params.inertia) * inverse[:, None, :]
+    return inverse, spatial.matrix_to_quat(axes_matrix), coupling
+
+
 class SymplecticSplitting(Integrator):
     """DLM splitting of the free rigid body, with kick-drift-kick for forces.
 
@@ -140,15 +158,17 @@ class SymplecticSplitting(Integrator):
       in value (no cost in a forward run), and to first order in ``W`` a turn by
       ``dt/2 W P`` in the derivative. Against central differences of scipy's solution of
       the flow, the derivatives converge at second order (``tests/test_integrators.py``).
-    * Known limit (stop 88's review, not fixed): *nearly* repeated moments, outside that
+    * Known limit (stop 88's review): *nearly* repeated moments, outside that
       window. The split's result depends, by O(dt^2), on which axes are chosen in the
       nearly degenerate plane, and those axes turn at a rate ~1/delta with the inertia
       (delta the two moments' gap). So the inertia derivative, exact for this map (it
       agrees with finite differences), carries an O(dt^2 / delta) term that the flow does
       not have: moments (1, 1 + delta, 1.8), dt = 0.01, 100 steps, against RK4's gradient
       (size 0.14): off by 2.8e-4 at delta = 1e-3, 2.8e-2 at 1e-5, 2.8 at 1e-7. The values
-      stay accurate. For an inertia fit of a nearly symmetric body use ``RK4`` or
-      ``ImplicitMidpoint``, or a step small enough that dt^2 / delta is small.
+      stay accurate. For an inertia fit of a nearly symmetric body use
+      :class:`SymmetricTopSplitting` (which never splits a nearly degenerate pair: 3.9e-6
+      at delta = 1e-7 in the same kind of test, where this split is off by 2.7e2), ``RK4``
+      or ``ImplicitMidpoint``.
     """
 
     axes: tuple[int, int, int] = eqx.field(default=(0, 1, 2), static=True, converter=_axes)
@@ -163,20 +183,8 @@ class SymplecticSplitting(Integrator):
             )
 
     def precompute(self, params: Params):
-        """Inverse principal moments ``(N, 3)`` (1/(kg m^2), the moments in ascending order),
-        principal-to-body quaternions ``(N, 4)``, and the off-diagonal inverse inertia in the
-        principal frame at repeated moments ``(N, 3, 3)`` (zero in value; see
-        :func:`jaxrb.inertia.repeated_moment_coupling`).
-
-        Inverted here, once per rollout: a step then multiplies. Divided in the step, reverse
-        mode recomputed the three quotients (and their derivatives) at every step, which XLA
-        did not hoist out of the backward loop: 3 kernels a step of the ball's gradient.
-        """
-        moments, axes_matrix = jax.vmap(principal_axes)(params.inertia)
-        inverse = 1.0 / moments
-        # (L + C)^-1 = L^-1 - L^-1 C L^-1 to first order in the coupling C, which is zero.
-        coupling = -inverse[:, :, None] * jax.vmap(repeated_moment_coupling)(params.inertia) * inverse[:, None, :]
-        return inverse, spatial.matrix_to_quat(axes_matrix), coupling
+        """The principal frames of every body, once per rollout: :func:`principal_frames`."""
+        return principal_frames(params)
 
     def free_rotation(self, principal_frames, orientation, angular_momentum, dt: float):
         """Torque-free attitude flow over ``dt`` at constant world ``L``; ``(N, 4)``."""
