@@ -132,23 +132,24 @@ _PID_COEFFICIENTS: dict[type, dict[str, float]] = {
 
 def _checked_solver(solver):
     """``solver``, or Tsit5 for ``None``; a string or a class had failed inside diffrax."""
-    if solver is None:
-        return diffrax.Tsit5()
-    if not isinstance(solver, diffrax.AbstractSolver):
-        raise ValueError(f"solver must be a diffrax solver instance, e.g. diffrax.Tsit5() or diffrax.Dopri8(), "
-                         f"got {solver!r}.")
-    return solver
+    return _diffrax_instance("solver", solver, diffrax.AbstractSolver, diffrax.Tsit5,
+                             "a diffrax solver instance, e.g. diffrax.Tsit5() or diffrax.Dopri8()")
 
 
 def _checked_adjoint(adjoint):
     """``adjoint``, or ``RecursiveCheckpointAdjoint`` for ``None``; the string "forward" had
     failed deep inside diffrax."""
-    if adjoint is None:
-        return diffrax.RecursiveCheckpointAdjoint()
-    if not isinstance(adjoint, diffrax.AbstractAdjoint):
-        raise ValueError(f"adjoint must be a diffrax adjoint instance, e.g. diffrax.ForwardMode() for jax.jacfwd, or "
-                         f"diffrax.RecursiveCheckpointAdjoint() (the default), got {adjoint!r}.")
-    return adjoint
+    return _diffrax_instance("adjoint", adjoint, diffrax.AbstractAdjoint, diffrax.RecursiveCheckpointAdjoint,
+                             "a diffrax adjoint instance, e.g. diffrax.ForwardMode() for jax.jacfwd, or "
+                             "diffrax.RecursiveCheckpointAdjoint() (the default)")
+
+
+def _diffrax_instance(name, value, kind, default, expected):
+    if value is None:
+        return default()
+    if not isinstance(value, kind):
+        raise ValueError(f"{name} must be {expected}, got {value!r}.")
+    return value
 
 
 def default_controller(solver, rtol: float, atol: float, dtmax=None) -> diffrax.PIDController:

@@ -233,9 +233,15 @@ class SymplecticSplitting(Integrator):
         return jax.vmap(rotate)(*principal_frames, orientation, angular_momentum)
 
     def step(self, scene, params: Params, state: State, dt: float, derived=None) -> State:
-        principal_frames = self.precompute(params) if derived is None else derived
+        return principal_frame_step(self, scene, params, state, dt, derived)
 
-        def rotate(params, orientation, angular_momentum, dt):
-            return self.free_rotation(principal_frames, orientation, angular_momentum, dt)
 
-        return kick_drift_kick(scene, params, state, dt, rotate)
+def principal_frame_step(integrator, scene, params: Params, state: State, dt: float, derived=None) -> State:
+    """Kick-drift-kick around ``integrator.free_rotation(frames, q, L, dt)``, with ``frames``
+    the given ``derived`` or :func:`principal_frames` (both splittings' ``step``)."""
+    frames = principal_frames(params) if derived is None else derived
+
+    def rotate(params, orientation, angular_momentum, dt):
+        return integrator.free_rotation(frames, orientation, angular_momentum, dt)
+
+    return kick_drift_kick(scene, params, state, dt, rotate)

@@ -25,8 +25,7 @@ import jax.numpy as jnp
 from .. import spatial
 from ..state import Params, State
 from ._base import Integrator
-from ._composition import kick_drift_kick
-from ._splitting import _coupled_turn, _rotate_about_principal_axis, principal_frames
+from ._splitting import _coupled_turn, _rotate_about_principal_axis, principal_frame_step, principal_frames
 
 __all__ = ["SymmetricTopSplitting"]
 
@@ -101,9 +100,4 @@ class SymmetricTopSplitting(Integrator):
         return jax.vmap(rotate)(*frames, orientation, angular_momentum)
 
     def step(self, scene, params: Params, state: State, dt: float, derived=None) -> State:
-        frames = self.precompute(params) if derived is None else derived
-
-        def rotate(params, orientation, angular_momentum, dt):
-            return self.free_rotation(frames, orientation, angular_momentum, dt)
-
-        return kick_drift_kick(scene, params, state, dt, rotate)
+        return principal_frame_step(self, scene, params, state, dt, derived)
