@@ -446,6 +446,10 @@ def test_free_fall_cannot_tell_the_mass():
     assert abs(direction[0]) > 0.999 and report.labels[0] == "mass[ball]"
     assert np.isinf(report.std[0]) and np.all(np.isfinite(report.std[1:]))
     assert "+1.00 mass[ball]" in str(report)
+    # The noise variance counts the 3 determined directions, not the 4 parameters (it had
+    # divided by m - p = 146, 0.7% high): 1e-3 m of noise, measured sigma 1.08e-3.
+    residual = np.asarray(heights(truth)).ravel() - np.asarray(measured).ravel()
+    assert report.sigma2 == pytest.approx(residual @ residual / (residual.size - 3), rel=1e-12)
 
 
 def _thrown_ball():
@@ -511,7 +515,8 @@ def test_rounding_is_measured_against_the_measurements_alone():
 def test_fewer_residuals_than_parameters_leave_the_unseen_directions_unidentifiable():
     """With m < p residuals the SVD has only m singular values: the p - m directions the
     data cannot see are reported (singular value 0), and with no residual to spare
-    (m <= p) the noise variance, covariance and standard errors are NaN, not zero."""
+    (m <= the determined directions) the noise variance, covariance and standard errors
+    are NaN, not zero."""
     scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)])
     truth = scene.params(dtype=jnp.float64)
 

@@ -3,7 +3,8 @@
 Around a fit ``theta`` (the free physical values, :meth:`FreeParameters.to_vector`), the
 residuals ``r(theta)`` have the sensitivity matrix ``J = dr/dtheta`` (``m x p``). With
 Gaussian noise of variance ``sigma^2`` the Gauss-Newton (Cramer-Rao) covariance of the
-estimate is ``sigma^2 (J^T J)^-1``, with ``sigma^2`` estimated as ``|r|^2 / (m - p)``.
+estimate is ``sigma^2 (J^T J)^-1``, with ``sigma^2`` estimated as ``|r|^2 / (m - rank)``
+(``rank``: the directions the data determine, ``p`` when all are).
 
 Which combinations the data pin down is read from the singular values of ``J D``, where
 ``D = diag(|theta|)`` (an entry that is zero counts 1): its columns are the residuals'
@@ -58,8 +59,9 @@ class Identifiability:
         unidentifiable: ``[(relative singular value, direction), ...]`` for every singular
             value below ``rcond`` times the largest, or below ``floor``: combinations the
             data do not determine.
-        sigma2: the residual variance ``|r|^2 / (m - p)``; NaN when ``m <= p`` (no residual
-            to estimate it from; the covariance and the standard errors are then NaN too).
+        sigma2: the residual variance ``|r|^2 / (m - rank)``, ``rank = p - len(unidentifiable)``
+            the number of determined directions; NaN when ``m <= rank`` (no residual to
+            estimate it from; the covariance and the standard errors are then NaN too).
         covariance: ``(p, p)`` ``sigma^2 (J^T J)^+`` (pseudo-inverse with ``rcond``).
         std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
         rcond: the threshold used.
@@ -254,9 +256,12 @@ def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) ->
                       "parameter the data do not determine may be reported identifiable. Pass data= to the "
                       "fit or report, or measurement_size= to rb.identify.identifiability.", stacklevel=3)
     weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= max(rcond * top, floor)]
-    # With no residual to spare (m <= p) the noise variance cannot be estimated from the
-    # fit (an exact fit would claim zero error): NaN, not |r|^2 / 1.
-    sigma2 = float(res @ res / (m - p)) if m > p else float("nan")
+    # The fit spends one degree of freedom per direction it determines (the rank), not per
+    # parameter: an undetermined direction moves no residual. With none to spare (m <= rank)
+    # the noise variance cannot be estimated from the fit (an exact fit would claim zero
+    # error): NaN, not |r|^2 / 1.
+    rank = p - len(weak)
+    sigma2 = float(res @ res / (m - rank)) if m > rank else float("nan")
     scaled_cov = np.linalg.pinv((jac * scale).T @ (jac * scale), rcond=rcond**2, hermitian=True)
     covariance = sigma2 * scale[:, None] * scaled_cov * scale[None, :]
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
