@@ -562,6 +562,12 @@ class Scene:
             if key[::-1] in per_pair and key[0] != key[1]:  # one of the two had been dropped without a word
                 raise ValueError(f"{what}: the pair {key!r} is given twice, as {key!r} and {key[::-1]!r}; "
                                  f"give it once.")
+            # One number per pair (a list had failed in jnp.stack: "Cannot stack arrays with
+            # different numbers of dimensions").
+            shape = np.shape(per_pair[key]) if _is_traced(per_pair[key]) else _numbers(what, per_pair[key]).shape
+            if shape != ():
+                raise ValueError(f"{what}[{key!r}] must be one number (the pair's coefficient), got shape {shape}: "
+                                 f"{per_pair[key]!r}.")
         out = []
         for a, b in pairs:
             if (a, b) in per_pair or (b, a) in per_pair:

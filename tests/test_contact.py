@@ -399,6 +399,11 @@ def test_contact_settings_take_integers_of_any_type_and_contacts_none_means_none
     # A pair given twice, in both orders, had been read from one of them without a word.
     with pytest.raises(ValueError, match="is given twice"):
         ball_scene().params(restitution={("ball", "ground"): 0.8, ("ground", "ball"): 0.2})
+    # A pair's coefficient is one number: a list had failed in jnp.stack, naming no input.
+    with pytest.raises(ValueError, match=r"friction\[\('ball', 'ground'\)\] must be one number .* shape \(2,\)"):
+        ball_scene().params(friction={("ball", "ground"): [0.5, 0.2]})
+    with pytest.raises(ValueError, match="restitution must be numbers"):
+        ball_scene().params(restitution={("ball", "ground"): "high"})
 
 
 def test_a_scene_without_contacts_compiles_no_contact_code():
