@@ -23,10 +23,17 @@ def static_switch(name: str, value) -> bool:
 
 def positive_count(name: str, value) -> int:
     """``value`` as a Python int: a whole number >= 1 of any integer type (``np.int64`` from a
-    config array too; not a bool, not a float), or a ``ValueError``."""
+    config array too; not a bool, not a float), at most ``2**31 - 1`` (the counts become loop
+    lengths and int32 counters; 2**70 had passed here and failed later with an
+    ``OverflowError`` naming no input), or a ``ValueError``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value < 1:
         raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+    if value > _LARGEST_COUNT:
+        raise ValueError(f"{name} = {value!r} is too large: counts are at most 2**31 - 1 = {_LARGEST_COUNT}.")
     return int(value)
+
+
+_LARGEST_COUNT = 2**31 - 1
 
 
 def static_step_length(dt, where: str) -> float:

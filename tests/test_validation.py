@@ -569,6 +569,11 @@ def test_small_input_mistakes_are_explained():
     params = scene.params()
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         rb.identify.fit(lambda p: jnp.sum(p.mass), scene, params, "mass", max_steps=0, progress=False)
+    # Counts beyond int32 had passed the checks and failed later with an OverflowError.
+    with pytest.raises(ValueError, match=r"ContactSettings.impact_iterations = 1180591620717411303424 is too large"):
+        rb.ContactSettings(impact_iterations=2**70)
+    with pytest.raises(ValueError, match=r"max_steps = 4294967296 is too large: counts are at most 2\*\*31 - 1"):
+        rb.identify.fit(lambda p: jnp.sum(p.mass), scene, params, "mass", max_steps=2**32, progress=False)
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         rb.identify.fit_least_squares(lambda p: p.mass, scene, params, "mass", max_steps=-1, progress=False)
     with pytest.raises(ValueError, match="fit_least_squares"):  # a bare reshape error

@@ -8,7 +8,7 @@ import numbers
 
 import numpy as np
 
-from .._static import static_switch
+from .._static import positive_count, static_switch
 
 __all__ = ["ContactSettings"]
 
@@ -167,7 +167,8 @@ class ContactSettings:
         for name in ("iterations", "impact_iterations", "newton_iterations", "toi_iterations", "located_impacts",
                      "position_iterations"):
             _check(name, getattr(self, name), integer=True, positive=True)
-            object.__setattr__(self, name, int(getattr(self, name)))  # np.int64(8) too: a static loop length
+            # np.int64(8) too, and at most 2**31 - 1: a static loop length
+            object.__setattr__(self, name, positive_count(f"ContactSettings.{name}", getattr(self, name)))
         for name in ("restitution_threshold", "penetration_slop", "correction_slop", "margin", "skin", "tolerance",
                      "position_correction"):
             value = getattr(self, name)
