@@ -30,6 +30,19 @@ from ._splitting import _coupled_turn, _rotate_about_principal_axis, principal_f
 __all__ = ["SymmetricTopSplitting"]
 
 
+def _turn_about(momentum, half_rate):
+    """The quaternion ``(cos a, sin a L/|L|)`` (4,) of a turn about ``momentum`` ``L`` (3,)
+    by ``2 a``, with the half angle ``a = half_rate |L|`` (``half_rate = dt / 2 I``,
+    s/(kg m^2)); the identity at ``L = 0``, with finite derivatives there
+    (``sin a / |L| -> half_rate``)."""
+    size = spatial.safe_norm(momentum)
+    moving = size > 0
+    safe = jnp.where(moving, size, 1.0)
+    half_angle = half_rate * size
+    scale = jnp.where(moving, jnp.sin(half_angle) / safe, half_rate)
+    return jnp.concatenate([jnp.cos(half_angle)[None], scale * momentum])
+
+
 class SymmetricTopSplitting(Integrator):
     """Splitting about a sphere of the middle principal moment, exact for symmetric tops.
 
@@ -38,8 +51,8 @@ class SymmetricTopSplitting(Integrator):
         S(dt) R_0(k_0, dt/2) R_2(k_2, dt) R_0(k_0, dt/2)
 
     where ``R_i(k, h)`` turns the body about its ``i``-th principal axis by ``h k P_i`` (the
-    flow of ``k P_i^2 / 2``) and ``S(dt)`` about its momentum by ``dt |P| / I_1`` (the
-    flow of the sphere ``|P|^2 / 2 I_1``, which commutes with both). Forces and torques
+    flow of ``k P_i^2 / 2``) and ``S(dt)`` about its momentum, the world ``L``, by
+    ``dt |L| / I_1`` (the flow of the sphere ``|P|^2 / 2 I_1``, which commutes with both). Forces and torques
     enter by kick-drift-kick (:mod:`jaxrb.integrators._composition`), as in
     :class:`SymplecticSplitting`.
 
@@ -59,11 +72,11 @@ class SymmetricTopSplitting(Integrator):
       Inertia derivatives therefore stay O(dt^2)-accurate there, where
       :class:`SymplecticSplitting`'s carry an O(dt^2 / delta) term
       (``tests/test_integrators.py``).
-    * Cost: four rotations (three sin/cos pairs and one exponential map) against
-      :class:`SymplecticSplitting`'s five, and the same once-per-rollout principal frames.
-      Measured on this 2-core CPU (2,000 steps, minima of 15): one body 1.4x slower
-      forward and in reverse mode (kernel launches, not flops), 4096 float32 bodies 1.2x
-      faster forward and 1.05x in reverse mode (benchmarks/README.md, stop 89).
+    * Cost: three axis rotations and one turn about ``L`` (four sin/cos pairs), against
+      :class:`SymplecticSplitting`'s five axis rotations, and the same once-per-rollout
+      principal frames. Side by side on this 2-core CPU (``benchmarks/free_body.py``,
+      float32): 1.4x more steps per second for one body, 1.6x for 64 to 4096; a single float64
+      body's gradient over 2,000 steps within 3% (benchmarks/README.md, stop 89).
     * Stability: no step-size limit; the sphere's turn is exact at any rate, so a fast spin
       about any axis of a nearly spherical body is integrated nearly exactly.
     """
@@ -89,12 +102,14 @@ class SymmetricTopSplitting(Integrator):
             for k, fraction in ((2, 0.5), (0, 1.0), (2, 0.5)):
                 pose = _rotate_about_principal_axis(pose, k, fraction * dt * (inverse_moments[k] - sphere))
                 pose = jax.lax.optimization_barrier(pose)
-            q, momentum = pose[:4], pose[4:]
-            # The sphere: a turn about the body momentum (the world L) by dt |P| / I_1.
-            # Its own kernel too: left to fuse with the chain, the gradient was 1.25x slower.
-            q = spatial.quat_multiply(q, jax.lax.optimization_barrier(spatial.quat_exp(dt * sphere * momentum)))
-            q, _ = _coupled_turn(q, momentum, 0.5 * dt * coupling)
+            q, _ = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * coupling)
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
+            # The sphere: a turn about the world L by dt |L| / I_1, on the world side (it
+            # commutes with every turn on the body side). Made from L, off the chain's path,
+            # and its own kernel: after the chain, from the body momentum, a single body's
+            # forward was 1.9x slower than here and its gradient 1.4x (with or without the
+            # barrier, one or the other was slow; benchmarks/README.md, stop 89).
+            q = spatial.quat_multiply(jax.lax.optimization_barrier(_turn_about(l_world, 0.5 * dt * sphere)), q)
             return spatial.quat_normalize(q)
 
         return jax.vmap(rotate)(*frames, orientation, angular_momentum)
