@@ -11,8 +11,9 @@ the attitude on the world side, they on the body side, and each leaves the other
 unchanged). So only the two corrections are split (Strang), and the error constants are
 products of ``k_0`` and ``k_2``: the split is exact for every symmetric top (``k_0 = 0``
 or ``k_2 = 0``), and its O(dt^2) error vanishes as either pair of moments merges. This is
-the symmetric-top splitting family that Fasso compares (J. Comput. Phys. 189, 527 (2003)),
-with the middle moment as the sphere's so that neither merging pair is split.
+the kind of split that F. Fasso compares with the principal-axis ones ("Comparison of
+splitting algorithms for the rigid body", J. Comput. Phys. 189 (2003)), with the middle
+moment as the sphere's so that neither merging pair is split.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ class SymmetricTopSplitting(Integrator):
 
     The free step (moments ascending, ``k_i = 1/I_i - 1/I_1``)::
 
-        S(dt) R_0(k_0, dt/2) R_2(k_2, dt) R_0(k_0, dt/2)
+        S(dt) R_2(k_2, dt/2) R_0(k_0, dt) R_2(k_2, dt/2)
 
     where ``R_i(k, h)`` turns the body about its ``i``-th principal axis by ``h k P_i`` (the
     flow of ``k P_i^2 / 2``) and ``S(dt)`` about its momentum, the world ``L``, by
@@ -99,6 +100,11 @@ class SymmetricTopSplitting(Integrator):
             # Each rotation its own kernel, as in SymplecticSplitting: fused, XLA:CPU
             # recomputed the chain's shared terms (there, each extra rotation ~5x slower).
             pose = jax.lax.optimization_barrier(jnp.concatenate([q, momentum]))
+            # The largest moment's correction outermost: against the smallest's outermost (the
+            # other symmetric order), its attitude error was 1.9x smaller on the top (1, 2, 3)
+            # and 2.2x on (1, 1.05, 1.8) at dt = 0.01 over 10 s, and 1.9x larger on the
+            # spinning rod (1e-4, 1, 1 + 5e-5); energy errors within 5% of each other on
+            # the top.
             for k, fraction in ((2, 0.5), (0, 1.0), (2, 0.5)):
                 pose = _rotate_about_principal_axis(pose, k, fraction * dt * (inverse_moments[k] - sphere))
                 pose = jax.lax.optimization_barrier(pose)
