@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import spatial
 from ..state import Params, State
@@ -29,6 +30,9 @@ from ._base import Integrator
 from ._splitting import _coupled_turn, _rotate_about_principal_axis, principal_frame_step, principal_frames
 
 __all__ = ["SymmetricTopSplitting"]
+
+# The (0, 1) and (1, 0) entries: the block of the smaller pair of principal moments.
+_SMALLER_PAIR = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
 
 def _turn_about(momentum, half_rate):
@@ -77,7 +81,8 @@ class SymmetricTopSplitting(Integrator):
       :class:`SymplecticSplitting`'s five axis rotations, and the same once-per-rollout
       principal frames. Side by side on this 2-core CPU (``benchmarks/free_body.py``,
       float32): 1.4x more steps per second for one body, 1.6x for 64 to 4096; a single float64
-      body's gradient over 2,000 steps within 3% (benchmarks/README.md, stop 89).
+      body over 2,000 steps: forward 1.3x faster, gradient 1.1x slower (benchmarks/README.md,
+      stop 89).
     * Stability: no step-size limit; the sphere's turn is exact at any rate, so a fast spin
       about any axis of a nearly spherical body is integrated nearly exactly.
     """
@@ -93,10 +98,21 @@ class SymmetricTopSplitting(Integrator):
 
         def rotate(inverse_moments, principal, coupling, q, l_world):
             sphere = inverse_moments[1]
+            # The repeated moments' coupling (zero in value, with a derivative; see
+            # SymplecticSplitting) belongs to the correction whose pair it couples: the
+            # smaller pair's (0, 1) block to k_0's turn in the middle of the chain, the rest
+            # (the larger pair's, and a sphere's other blocks) outside it, half a step on
+            # either side. All of it outside, a top with two equal smaller moments got an
+            # inertia gradient O(dt^2) off the derivative of its own map (stop 89's review:
+            # 1.0e-3 of the largest entry at dt = 0.1; the finite differences' moments are
+            # apart, where k_0's turn in the middle carries the difference). The inner block
+            # turns once, for the whole step, beside k_0's turn: where it has a derivative
+            # (moments equal within sqrt(eps)) k_0's turn is the identity to that precision,
+            # so one side is the middle; in halves on both sides the gradient cost 15% more.
+            inner = coupling * _SMALLER_PAIR
+            outer = coupling - inner
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
-            # The repeated moments' coupling (zero in value, with a derivative), for half the
-            # step on either side, as in SymplecticSplitting.
-            q, momentum = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * coupling)
+            q, momentum = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * outer)
             # Each rotation its own kernel, as in SymplecticSplitting: fused, XLA:CPU
             # recomputed the chain's shared terms (there, each extra rotation ~5x slower).
             pose = jax.lax.optimization_barrier(jnp.concatenate([q, momentum]))
@@ -105,10 +121,14 @@ class SymmetricTopSplitting(Integrator):
             # and 2.2x on (1, 1.05, 1.8) at dt = 0.01 over 10 s, and 1.9x larger on the
             # spinning rod (1e-4, 1, 1 + 5e-5); energy errors within 5% of each other on
             # the top.
-            for k, fraction in ((2, 0.5), (0, 1.0), (2, 0.5)):
-                pose = _rotate_about_principal_axis(pose, k, fraction * dt * (inverse_moments[k] - sphere))
-                pose = jax.lax.optimization_barrier(pose)
-            q, _ = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * coupling)
+            pose = _rotate_about_principal_axis(pose, 2, 0.5 * dt * (inverse_moments[2] - sphere))
+            pose = jax.lax.optimization_barrier(pose)
+            pose = jnp.concatenate(_coupled_turn(pose[:4], pose[4:], dt * inner))
+            pose = _rotate_about_principal_axis(pose, 0, dt * (inverse_moments[0] - sphere))
+            pose = jax.lax.optimization_barrier(pose)
+            pose = _rotate_about_principal_axis(pose, 2, 0.5 * dt * (inverse_moments[2] - sphere))
+            pose = jax.lax.optimization_barrier(pose)
+            q, _ = _coupled_turn(pose[:4], pose[4:], 0.5 * dt * outer)
             q = spatial.quat_multiply(q, spatial.quat_conjugate(principal))
             # The sphere: a turn about the world L by dt |L| / I_1, on the world side (it
             # commutes with every turn on the body side). Made from L, off the chain's path,
