@@ -66,11 +66,15 @@ class SymmetricTopSplitting(Integrator):
       and bounded. The error constants carry ``k_0 k_2``: **exact** for any symmetric top
       (two equal moments: within 1.5e-14 rad of the closed form after 100 steps of 0.1 s,
       where :class:`SymplecticSplitting` is 0.05 rad off), and small for nearly symmetric
-      bodies (moments 1, 1.05, 1.8: 290x closer than :class:`SymplecticSplitting`).
+      bodies (moments 1, 1.05, 1.8, dt = 0.01, 10 s: 290x closer than
+      :class:`SymplecticSplitting` from omega0 = (0.3, 2.5, -0.5) rad/s, 100x from
+      (-0.3, 0.9, -0.5)).
     * The trade, on a strongly asymmetric body (the top ``I = (1, 2, 3)``, dt = 0.01): the
       attitude error is 3.6x smaller than :class:`SymplecticSplitting`'s (3.8e-6 against
       1.4e-5 rad at 10 s), the energy error 12x larger (1.7e-6 against 1.5e-7 over 1e5
-      steps; 7.0e-2 against 4.3e-2 at ``|omega| dt = 2``). Both stay bounded.
+      steps; 7.0e-2 against 4.3e-2 at ``|omega| dt = 2``). Both stay bounded. On the
+      spinning rod (1e-4, 1, 1 + 5e-5), omega0 = (100, 1, 0), its attitude error is 1.3x
+      larger (4.5e-3 against 3.5e-3 rad at 10 s, dt = 0.01).
     * Nearly repeated moments: the split never separates the two moments of a nearly
       degenerate pair (one of them is the sphere's), so its result does not depend on the
       principal axes chosen in their plane, which turn at a rate ~1/delta with the inertia.
@@ -83,8 +87,12 @@ class SymmetricTopSplitting(Integrator):
       float32): 1.4x more steps per second for one body, 1.6x for 64 to 4096; a single float64
       body over 2,000 steps: forward 1.3x faster, gradient 1.1x slower (benchmarks/README.md,
       stop 89).
-    * Stability: no step-size limit; the sphere's turn is exact at any rate, so a fast spin
-      about any axis of a nearly spherical body is integrated nearly exactly.
+    * Large steps: never NaN, ``L`` exact and the attitude a rotation at any step, so the
+      energy stays between ``|L|^2 / 2 I_2`` and ``|L|^2 / 2 I_0``; the sphere's turn is
+      exact at any rate, so a fast spin of a (nearly) symmetric body stays (nearly) exact.
+      On the asymmetric top the energy error reaches 2x at ``|omega| dt`` a little above 2
+      (``benchmarks/work_precision.py``'s stability limit: 1.99, as
+      :class:`SymplecticSplitting`'s).
     """
 
     order: ClassVar[int] = 2
