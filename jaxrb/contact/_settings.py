@@ -23,15 +23,14 @@ LEVEL_TOLERANCE = 1e-9
 TOUCHING = 1e-4
 
 
-def _check(name: str, value, *, integer: bool = False, positive: bool = False, unit: bool = False):
-    kind_ok = isinstance(value, numbers.Integral) if integer else isinstance(value, numbers.Real)
-    ok = kind_ok and not isinstance(value, (bool, np.bool_))
-    ok = ok and math.isfinite(value) and (value > 0 if positive else value >= 0)
+def _check(name: str, value, *, unit: bool = False):
+    """A real number >= 0 (at most 1 where ``unit``), or a ``ValueError`` naming the setting."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+    ok = ok and math.isfinite(value) and value >= 0
     if unit:
         ok = ok and value <= 1
     if not ok:
-        kind = "a positive integer" if integer else ("a number in [0, 1]" if unit else
-                                                       "a positive number" if positive else "a number >= 0")
+        kind = "a number in [0, 1]" if unit else "a number >= 0"
         raise ValueError(f"ContactSettings.{name} must be {kind}, got {value!r}.")
 
 
@@ -166,7 +165,6 @@ class ContactSettings:
             raise ValueError(f"ContactSettings.solver must be 'pgs' or 'exact', got {self.solver!r}.")
         for name in ("iterations", "impact_iterations", "newton_iterations", "toi_iterations", "located_impacts",
                      "position_iterations"):
-            _check(name, getattr(self, name), integer=True, positive=True)
             # np.int64(8) too, and at most 2**31 - 1: a static loop length
             object.__setattr__(self, name, positive_count(f"ContactSettings.{name}", getattr(self, name)))
         for name in ("restitution_threshold", "penetration_slop", "correction_slop", "margin", "skin", "tolerance",
