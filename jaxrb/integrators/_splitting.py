@@ -238,8 +238,8 @@ class SymplecticSplitting(Integrator):
 
 def principal_frame_step(integrator, scene, params: Params, state: State, dt: float, derived=None) -> State:
     """Kick-drift-kick around ``integrator.free_rotation(frames, q, L, dt)``, with ``frames``
-    the given ``derived`` or :func:`principal_frames` (both splittings' ``step``)."""
-    frames = principal_frames(params) if derived is None else derived
+    the given ``derived`` or ``integrator.precompute(params)`` (both splittings' ``step``)."""
+    frames = integrator.precompute(params) if derived is None else derived
 
     def rotate(params, orientation, angular_momentum, dt):
         return integrator.free_rotation(frames, orientation, angular_momentum, dt)

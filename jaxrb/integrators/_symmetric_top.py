@@ -98,13 +98,18 @@ class SymmetricTopSplitting(Integrator):
     order: ClassVar[int] = 2
 
     def precompute(self, params: Params):
-        """The principal frames, as :meth:`SymplecticSplitting.precompute`."""
-        return principal_frames(params)
+        """The principal frames, as :meth:`SymplecticSplitting.precompute`, with the repeated
+        moments' coupling ``(N, 3, 3)`` split once into its two parts: ``(inverse_moments,
+        principal, inner, outer)``, ``inner`` the smaller pair's ``(0, 1)`` block and
+        ``outer`` the rest (see :meth:`free_rotation`)."""
+        inverse_moments, principal, coupling = principal_frames(params)
+        inner = coupling * _SMALLER_PAIR[None]
+        return inverse_moments, principal, inner, coupling - inner
 
     def free_rotation(self, frames, orientation, angular_momentum, dt: float):
         """Torque-free attitude flow over ``dt`` at constant world ``L``; ``(N, 4)``."""
 
-        def rotate(inverse_moments, principal, coupling, q, l_world):
+        def rotate(inverse_moments, principal, inner, outer, q, l_world):
             sphere = inverse_moments[1]
             # The repeated moments' coupling (zero in value, with a derivative; see
             # SymplecticSplitting) belongs to the correction whose pair it couples: the
@@ -117,8 +122,7 @@ class SymmetricTopSplitting(Integrator):
             # turns once, for the whole step, beside k_0's turn: where it has a derivative
             # (moments equal within sqrt(eps)) k_0's turn is the identity to that precision,
             # so one side is the middle; in halves on both sides the gradient cost 15% more.
-            inner = coupling * _SMALLER_PAIR
-            outer = coupling - inner
+            # (``precompute`` splits it, once per rollout.)
             q = spatial.quat_multiply(q, principal)  # principal frame -> world
             q, momentum = _coupled_turn(q, spatial.quat_rotate_inverse(q, l_world), 0.5 * dt * outer)
             # Each rotation its own kernel, as in SymplecticSplitting: fused, XLA:CPU
