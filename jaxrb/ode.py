@@ -429,18 +429,23 @@ class ImpactSolution(eqx.Module):
 
     Attributes:
         final: the :class:`jaxrb.State` at ``t1`` (or at the last impact, if
-            ``max_impacts`` impacts happen before ``t1``).
+            ``max_impacts`` impacts happen before ``t1``: see ``reached_t1``).
         impact_times: ``(max_impacts,)`` s, the located impacts (``inf`` after the last).
         after_impact: a :class:`jaxrb.State` with a leading ``(max_impacts,)`` axis: the
             state just after each impact (rows past ``num_impacts`` hold ``final``, the
             state at ``t1``).
         num_impacts: ``()`` int, how many impacts were located before ``t1``.
+        reached_t1: ``()`` bool, whether the solve got to ``t1``. ``False`` when the
+            ``max_impacts`` impacts were spent first (``final`` is then the state after the
+            last of them): raise ``max_impacts``, or call again from ``final``. In an
+            ensemble (``vmap``) it tells which members stopped short.
     """
 
     final: State
     impact_times: Array
     after_impact: State
     num_impacts: Array
+    reached_t1: Array
 
 
 def solve_with_impacts(
@@ -658,4 +663,7 @@ def solve_with_impacts(
                             jnp.asarray(state.time, dtype), t1, None, rtol, atol, "rb.ode.solve_with_impacts")
     (final, count), (times, states) = jax.lax.scan(
         segment, (start, jnp.zeros((), jnp.int32)), None, length=max_impacts)
-    return ImpactSolution(final=final, impact_times=times, after_impact=states, num_impacts=count)
+    # diffrax ends a segment that meets no event at t1 exactly; one whose event falls on t1
+    # has reached it too.
+    return ImpactSolution(final=final, impact_times=times, after_impact=states, num_impacts=count,
+                          reached_t1=final.time >= t1)

@@ -59,6 +59,8 @@ def test_slow_impacts_are_plastic_and_the_ball_rests():
     # Every located impact is counted; after the plastic one the ball rests, and resting
     # contact on this path is a sequence of impacts (each within atol of the ground).
     assert int(sol.num_impacts) == 8
+    # The eight impacts are spent by t = 1.0 s, short of t1 = 1.5 s, and the result says so.
+    assert float(sol.final.time) < 1.5 and not bool(sol.reached_t1)
     found = np.asarray(sol.impact_times)
     np.testing.assert_allclose(found[: bouncing + 1], times[: bouncing + 1], rtol=1e-9)
     vz = np.asarray(sol.after_impact.velocity[:, 0, 2])
@@ -144,6 +146,7 @@ def test_two_balls_cannot_pass_through_each_other_between_step_ends():
     for t1 in (2.0, 10.0):
         result = rb.ode.solve_with_impacts(scene, params, state, t1, max_impacts=2)
         assert int(result.num_impacts) == 1, (t1, result.impact_times)
+        assert bool(result.reached_t1) and float(result.final.time) == t1
         np.testing.assert_allclose(result.impact_times[0], 0.8, rtol=0, atol=1e-9)
         np.testing.assert_allclose(result.final.position[:, 0], [0.8, 1.0 + (t1 - 0.8)], rtol=0, atol=1e-8)
 
