@@ -475,6 +475,9 @@ def test_a_lone_parameter_at_rounding_level_is_unidentifiable():
     report = rb.identify.identifiability(lambda p, d: path(p) - d, scene, truth, "mass", data=measured)
     assert report.singular_values[0] < 1e-12 < report.floor
     assert not report.identifiable and np.isinf(report.std[0])
+    # The covariance covers the determined directions only: none here (it had been 1e28,
+    # the pseudo-inverse keeping the rounding-level direction).
+    assert np.all(report.covariance == 0.0)
     assert "rounding level" in str(report) and "mass[ball]" in str(report)
     # The same rollout sees gravity (one free field of three values): identifiable.
     seen = rb.identify.identifiability(lambda p, d: path(p) - d, scene, truth, "gravity", data=measured)

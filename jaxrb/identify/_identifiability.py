@@ -62,8 +62,12 @@ class Identifiability:
         sigma2: the residual variance ``|r|^2 / (m - rank)``, ``rank = p - len(unidentifiable)``
             the number of determined directions; NaN when ``m <= rank`` (no residual to
             estimate it from; the covariance and the standard errors are then NaN too).
-        covariance: ``(p, p)`` ``sigma^2 (J^T J)^+`` (pseudo-inverse with ``rcond``).
-        std: ``(p,)`` standard errors; ``inf`` for parameters in an unidentifiable direction.
+        covariance: ``(p, p)`` ``sigma^2 (J^T J)^+``, the pseudo-inverse over the determined
+            directions only (those not in ``unidentifiable``): it is the covariance of the
+            estimate's determined part and says nothing of the rest (zero along it).
+        std: ``(p,)`` standard errors: the square roots of ``covariance``'s diagonal, and
+            ``inf`` for every parameter with a component of 0.1 or more in an unidentifiable
+            direction.
         rcond: the threshold used.
         floor: the absolute threshold: ``sqrt(eps)`` times the size of the data (the norm
             of the measurements, ``measurement_size`` or ``data``'s values, and of the
@@ -262,7 +266,12 @@ def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) ->
     # error): NaN, not |r|^2 / 1.
     rank = p - len(weak)
     sigma2 = float(res @ res / (m - rank)) if m > rank else float("nan")
-    scaled_cov = np.linalg.pinv((jac * scale).T @ (jac * scale), rcond=rcond**2, hermitian=True)
+    # (J^T J)^+ over the directions the report calls determined, from the SVD: the
+    # pseudo-inverse's own cut (rcond^2 on J^T J) kept those below the absolute floor, so a
+    # lone parameter at rounding level (the mass in free fall) got a covariance of 1e28 beside
+    # its infinite standard error.
+    kept = np.array([s > max(rcond * top, floor) for s in sv], bool)
+    scaled_cov = (vt[kept].T / sv[kept] ** 2) @ vt[kept]
     covariance = sigma2 * scale[:, None] * scaled_cov * scale[None, :]
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     for _, direction in weak:
