@@ -146,7 +146,8 @@ class SymplecticSplitting(Integrator):
       energy stays between ``|L|^2 / 2 I_2`` and ``|L|^2 / 2 I_0``; a fast spin about a
       principal axis is integrated exactly. Away from the axes the energy error grows
       with ``|omega| dt``: on the asymmetric top it reaches 2x at ``|omega| dt`` a little
-      above 2 (``benchmarks/work_precision.py``'s stability limit: 1.99). The default ``axes = (0, 1, 2)`` (smallest moment outermost, largest
+      above 2 (``benchmarks/work_precision.py``'s stability limit: 1.99).
+    * Ordering: the default ``axes = (0, 1, 2)`` (smallest moment outermost, largest
       innermost) gave the smallest energy error of the six orderings on both the
       asymmetric top ``I = (1, 2, 3)`` (max 1.5e-7 over 1e5 steps of 0.01 s; the worst
       ordering, 2.6e-5) and the spinning rod ``I = (1e-4, 1, 1 + 5e-5)``,
