@@ -493,7 +493,8 @@ def from_mesh(
     Raises:
         ValueError: neither or both of ``density``/``mass``; a mesh that is not closed
             and consistently oriented (checked where ``vertices`` and ``faces`` are
-            concrete, as :class:`jaxrb.shapes.Mesh` checks them); or a signed volume
+            concrete, as :class:`jaxrb.shapes.Mesh` checks them), or with a connected
+            part that encloses no volume beyond rounding (a flat one); or a signed volume
             ``<= 0`` (an inside-out mesh). Under ``jit``/``grad``/``vmap`` the volume is
             not known at trace time, and that message comes from ``eqx.error_if`` at run
             time instead (the closure is then not checked).
@@ -617,6 +618,13 @@ def _jacobi_eigh(matrix):
             carry = _jacobi_rotation(*carry, p, q)
         return carry
 
+    # Scaled to a largest entry in [0.5, 1) by a power of two (exact): the rotations square
+    # the entries, which underflowed to 0 in float32 below ~1e-19 kg m^2 (a 10 um steel box:
+    # no rotation, moments 36% off) and overflowed above ~1e19 (a 2 km rock).
+    largest = jnp.max(jnp.abs(matrix), axis=(-2, -1))
+    _, exponent = jnp.frexp(jnp.where(largest > 0, largest, 1.0))
+    power = jnp.ldexp(jnp.ones_like(largest), exponent)[..., None, None]
+    matrix = matrix / power
     axes = jnp.broadcast_to(jnp.eye(3, dtype=matrix.dtype), matrix.shape)
     # A loop, not unrolled: unrolled, the sweeps were 988 of the 6,021 equations of the
     # bouncing ball's forward rollout (5,033 now), for a computation that runs once per
@@ -624,7 +632,7 @@ def _jacobi_eigh(matrix):
     # the 5-box stack 16.6, 13.8 -> 12.0, 13.6 s (two runs each, noisy). A scan over
     # Step.__call__, which runs it every step, is as fast as before (XLA hoists it).
     matrix, axes = jax.lax.fori_loop(0, _JACOBI_SWEEPS, sweep, (matrix, axes))
-    moments = jnp.diagonal(matrix, axis1=-2, axis2=-1)
+    moments = jnp.diagonal(matrix, axis1=-2, axis2=-1) * power[..., 0]
     # Sort ascending with a three-comparator network, swapping eigenvector columns along.
     for i, j in ((0, 1), (1, 2), (0, 1)):
         swap = moments[..., i] > moments[..., j]

@@ -245,6 +245,10 @@ def check_mesh(vertices, faces, what: str):
     vertex), and a closed, consistently oriented surface."""
     import numpy as np
 
+    given = np.asarray(vertices)
+    # The rounding of the vertices as given (float32's from a float32 array), for the
+    # volume test of _check_parts_outward.
+    precision = float(np.finfo(given.dtype if np.issubdtype(given.dtype, np.floating) else np.float64).eps)
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
@@ -256,11 +260,11 @@ def check_mesh(vertices, faces, what: str):
                          f"into triangles (a quad (a, b, c, d) into (a, b, c) and (a, c, d)).")
     if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
         raise ValueError(f"{what}: faces must be integer indices in [0, {len(v)}).")
-    _check_closed_and_oriented(v, f)
+    _check_closed_and_oriented(v, f, precision)
     return v, f
 
 
-def _check_closed_and_oriented(vertices, faces) -> None:
+def _check_closed_and_oriented(vertices, faces, precision: float) -> None:
     """Raise unless every edge of the mesh is traversed exactly once in each direction by
     its faces: the surface is closed, and its faces agree on the orientation (the volume
     integrals of :func:`jaxrb.inertia.from_mesh` are wrong otherwise, silently: an open
@@ -282,15 +286,16 @@ def _check_closed_and_oriented(vertices, faces) -> None:
             f"it in opposite directions), but {open_edges} edges have no opposite (the surface is open there) "
             f"and {twice} are traversed twice the same way (a face flipped or given twice). Its volume and "
             "inertia would be wrong: close the surface and orient every face counter-clockwise seen from outside.")
-    _check_parts_outward(unique, corners)
+    _check_parts_outward(unique, corners, precision)
 
 
-def _check_parts_outward(vertices, corners) -> None:
+def _check_parts_outward(vertices, corners, precision: float) -> None:
     """Raise if a connected part of a closed mesh is inside out (negative volume) without
     being a cavity inside another part. Each part then passes the edge test on its own, and
     the total volume can still be positive: a mesh of two cubes, one wound inward, had
     come out with volume 7 instead of 9, its centre of mass outside both.
-    ``vertices``: the distinct positions; ``corners``: ``(F, 3)`` face corners indexing them."""
+    ``vertices``: the distinct positions; ``corners``: ``(F, 3)`` face corners indexing them;
+    ``precision``: the relative rounding of the vertices as given (their dtype's eps)."""
     import numpy as np
 
     labels = np.arange(len(vertices))
@@ -303,8 +308,28 @@ def _check_parts_outward(vertices, corners) -> None:
             break
         labels = new
     part = labels[corners[:, 0]]
-    a, b, c = (vertices[corners[:, k]] for k in range(3))
-    volume = np.bincount(part, weights=np.einsum("fi,fi->f", a, np.cross(b, c)) / 6.0)
+    # About the vertices' mean, in float64: the signed volumes of a mesh far from its origin
+    # would cancel there.
+    centred = np.asarray(vertices, np.float64) - np.mean(np.asarray(vertices, np.float64), axis=0)
+    a, b, c = (centred[corners[:, k]] for k in range(3))
+    terms = np.einsum("fi,fi->f", a, np.cross(b, c)) / 6.0
+    volume = np.bincount(part, weights=terms)
+    # A part whose volume is within the rounding of its terms encloses none (all its
+    # vertices in a plane): its sign is the rounding's, and the mesh was accepted or called
+    # inside out by where it was placed, an accepted flat tetrahedron given moments from
+    # noise (stop 90's review).
+    # Each term's rounding is eps |a| |b| |c|, not eps |term| (a flat part's terms are each
+    # near 0, their apex lying in its plane), and the vertices' own rounding, ``precision
+    # |x|_max`` each, moves it by up to that times (|a||b| + |b||c| + |c||a|).
+    na, nb, nc = np.linalg.norm(np.stack([a, b, c]), axis=-1)
+    far = precision * np.max(np.abs(vertices))
+    sizes = (np.finfo(np.float64).eps * na * nb * nc + far * (na * nb + nb * nc + nc * na)) / 6.0
+    rounding = 64 * np.bincount(part, weights=sizes)
+    for k in np.flatnonzero((np.abs(volume) <= rounding) & (np.bincount(part) > 0)):
+        raise ValueError(
+            f"A connected part of the mesh ({int(np.sum(part == k))} faces) encloses no volume ({volume[k]:.3g} "
+            f"m^3, within rounding): its faces lie in a plane or fold onto each other. A solid needs a closed "
+            "surface around a volume; model a thin part as a thin solid (a box of small thickness).")
     outward = volume > 0
     for k in np.flatnonzero((volume < 0) & (np.bincount(part) > 0)):
         point = a[np.flatnonzero(part == k)[0]]

@@ -544,6 +544,30 @@ def test_a_mesh_part_wound_inward_is_refused_unless_it_is_a_cavity():
     assert float(inertia.volume(hollow)) == pytest.approx(64.0 - 1.0)
 
 
+def test_a_closed_mesh_that_encloses_no_volume_is_refused_wherever_it_is_placed():
+    """Four coplanar vertices, four faces: closed and consistently oriented, but flat. Its
+    signed volume is rounding, so it had been accepted or called inside out by where it was
+    placed (1 of 12 rigid placements accepted, with moments from noise that differed 1.5%
+    between placements, and a mass of 4.6e-15 kg at a density of 1000). A thin solid stays
+    accepted, far from the origin too."""
+    flat = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.3, 0.3, 0.0]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]])
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        turn = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        for offset, dtype in ((0.0, np.float64), (3.0, np.float64), (1e3, np.float64), (3.0, np.float32)):
+            placed = (flat @ turn.T + offset * rng.normal(size=3)).astype(dtype)
+            with pytest.raises(ValueError, match=r"\(4 faces\) encloses no volume"):
+                inertia.from_mesh(placed, faces, mass=1.0)
+            with pytest.raises(ValueError, match="encloses no volume"):
+                shapes.Mesh(placed, faces)
+    for thickness in (1e-3, 1e-9):
+        half = np.array([0.5, 0.5, thickness])
+        vertices, box_faces = _box_mesh(half, turn, np.full(3, 1e3))
+        thin = inertia.from_mesh(vertices, box_faces, density=1.0)
+        np.testing.assert_allclose(float(thin.mass), 8 * np.prod(half), rtol=1e-4)
+
+
 def test_open_or_inconsistently_oriented_meshes_are_refused():
     """The volume integrals need a closed surface whose faces agree on the orientation;
     an open cube missing one face gave 833 kg at a density of 1000, silently."""
@@ -990,8 +1014,10 @@ def test_principal_axes_batched_jacobi_matches_numpy(dtype, tolerance):
     """The element-wise Jacobi eigensolver behind principal_axes, vmapped and jitted.
 
     Random symmetric matrices plus the degenerate and ill-scaled ones (cube, cylinder,
-    thin rod, zero). Tolerances: measured 3.6e-15 (float64) and 1.2e-6 (float32)
-    relative to the largest entry; float32 under jit once failed here (tau^2 overflow).
+    thin rod, zero), and some of each at 1e-30 to 1e30 kg m^2. Tolerances: measured 3.6e-15
+    (float64) and 1.2e-6 (float32) relative to the largest entry; float32 under jit once
+    failed here (tau^2 overflow), and at 1e-20 or 1e20 (a 10 um steel box, a 2 km rock) its
+    moments were 10-36% off (squares under- or overflowing in the rotations).
     """
     rng = np.random.default_rng(0)
     matrices = rng.normal(size=(2000, 3, 3))
@@ -1001,6 +1027,7 @@ def test_principal_axes_batched_jacobi_matches_numpy(dtype, tolerance):
                np.zeros((3, 3))]
     special += [turn @ m @ turn.T for m in special]
     matrices = np.concatenate([matrices, np.stack(special)])
+    matrices = np.concatenate([matrices] + [size * matrices[-60:] for size in (1e-30, 1e-20, 1e20, 1e30)])
     moments, axes = jax.jit(jax.vmap(inertia.principal_axes))(jnp.asarray(matrices, dtype=dtype))
     assert moments.dtype == dtype
     moments, axes = np.asarray(moments, dtype=float), np.asarray(axes, dtype=float)
