@@ -708,6 +708,12 @@ def principal_axes(
     moments repeat (cube, cylinder). There the axes within the repeated eigenspace are not
     unique and their derivative is taken as 0; the moments' derivatives stay exact, and
     what the axes do not absorb is :func:`repeated_moment_coupling`'s derivative.
+
+    First derivatives only, where moments repeat: second derivatives (``jax.hessian``) differentiate the
+    rule's own eigen-decomposition, and are right for distinct moments (1e-15) but wrong where two
+    moments are equal, even of smooth functions of the inertia (the Hessian of ``sum(moments**2)``
+    of an axisymmetric box 0.5% off, of a cube's by 1e10: stop 90's review). Individual
+    moments are not differentiable there in a direction that breaks the symmetry.
     """
     inertia = jnp.asarray(inertia)
     return _principal_axes(0.5 * (inertia + transpose(inertia)))
