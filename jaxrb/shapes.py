@@ -265,8 +265,9 @@ def check_mesh(vertices, faces, what: str):
 
 
 def _check_closed_and_oriented(vertices, faces, precision: float) -> None:
-    """Raise unless every edge of the mesh is traversed exactly once in each direction by
-    its faces: the surface is closed, and its faces agree on the orientation (the volume
+    """Raise unless every edge of the mesh is traversed as often in each direction by its
+    faces (once, or more where solids touch along it): the surface is closed, and its
+    faces agree on the orientation (the volume
     integrals of :func:`jaxrb.inertia.from_mesh` are wrong otherwise, silently: an open
     unit cube missing one face gave 833 kg at a density of 1000). Vertices at the same
     position count as one, so a triangle soup (as STL files store a mesh) passes."""
@@ -277,15 +278,21 @@ def _check_closed_and_oriented(vertices, faces, precision: float) -> None:
     edges = np.stack([corners, np.roll(corners, -1, axis=1)], -1).reshape(-1, 2).astype(np.int64)
     code = edges[:, 0] * len(vertices) + edges[:, 1]
     codes, counts = np.unique(code, return_counts=True)
-    twice = int(np.sum(counts > 1))
+    # An edge may be shared by more than two faces (two cubes touching along an edge: a
+    # valid solid, refused until stop 90) as long as it is traversed as often each way.
+    reverse = (codes % len(vertices)) * len(vertices) + codes // len(vertices)
+    where = np.minimum(np.searchsorted(codes, reverse), len(codes) - 1)
+    reverse_counts = np.where(codes[where] == reverse, counts[where], 0)
+    twice = int(np.sum(counts > np.maximum(reverse_counts, 1)))
     opposite = edges[:, 1] * len(vertices) + edges[:, 0]
     open_edges = int(np.sum(~np.isin(opposite, codes)))
     if twice or open_edges:
         raise ValueError(
-            f"Mesh must be a closed, consistently oriented surface (each edge shared by two faces that traverse "
-            f"it in opposite directions), but {open_edges} edges have no opposite (the surface is open there) "
-            f"and {twice} are traversed twice the same way (a face flipped or given twice). Its volume and "
-            "inertia would be wrong: close the surface and orient every face counter-clockwise seen from outside.")
+            f"Mesh must be a closed, consistently oriented surface (each edge traversed by its faces as often in "
+            f"one direction as in the other), but {open_edges} edges have no opposite (the surface is open there) "
+            f"and {twice} are traversed twice the same way, more often than the other way (a face flipped or given "
+            "twice). Its volume and inertia would be wrong: close the surface and orient every face "
+            "counter-clockwise seen from outside.")
     _check_parts_outward(unique, corners, precision)
 
 

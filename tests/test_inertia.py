@@ -544,6 +544,25 @@ def test_a_mesh_part_wound_inward_is_refused_unless_it_is_a_cavity():
     assert float(inertia.volume(hollow)) == pytest.approx(64.0 - 1.0)
 
 
+def test_solids_touching_along_an_edge_make_one_valid_mesh():
+    """Two cubes sharing one edge: each direction of that edge is traversed twice. A valid
+    solid, but it was refused as "traversed twice the same way (a face flipped or given
+    twice)"; now its volume and inertia are the two cubes'. A face given twice is still
+    refused (its edges run twice one way, once the other)."""
+    cube, faces = _box_mesh(np.array([0.5, 0.5, 0.5]), np.eye(3), np.zeros(3))
+    other = cube + np.array([1.0, 1.0, 0.0])  # shares the edge x = y = 0.5
+    vertices, both = np.vstack([cube, other]), np.vstack([faces, faces + len(cube)])
+    solid = inertia.mass_properties(shapes.Mesh(vertices, both), density=1.0)
+    parts = [inertia.box(1.0, jnp.asarray([0.5, 0.5, 0.5])).transformed(jnp.asarray(c))
+             for c in ([0.0, 0.0, 0.0], [1.0, 1.0, 0.0])]
+    expected = inertia.compose(parts)
+    np.testing.assert_allclose(float(solid.mass), 2.0, rtol=1e-12)
+    np.testing.assert_allclose(solid.com, expected.com, atol=1e-12)
+    _assert_inertia_close(solid.inertia, expected.inertia, rtol=1e-12)
+    with pytest.raises(ValueError, match="3 are traversed twice the same way"):
+        shapes.Mesh(vertices, np.vstack([both, both[:1]]))
+
+
 def test_a_closed_mesh_that_encloses_no_volume_is_refused_wherever_it_is_placed():
     """Four coplanar vertices, four faces: closed and consistently oriented, but flat. Its
     signed volume is rounding, so it had been accepted or called inside out by where it was
