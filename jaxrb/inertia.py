@@ -798,8 +798,18 @@ _MASS_PROPERTIES: dict[type, Callable[[shapes.Shape, Array], MassProperties]] = 
     shapes.Rod: lambda s, m: rod(m, _sized(s.half_length, m)),
     shapes.Plate: lambda s, m: plate(m, _sized(s.half_extents, m)),
     shapes.Disk: lambda s, m: disk(m, _sized(s.radius, m)),
-    shapes.Mesh: lambda s, m: from_mesh(_sized(s.vertices, m), s.faces, mass=m),
+    shapes.Mesh: lambda s, m: _mesh_properties(s, m),
 }
+
+
+def _mesh_properties(mesh: shapes.Mesh, mass: Array) -> MassProperties:
+    """:func:`from_mesh` of a stored mesh, its vertices taken about their mean in float64
+    before the cast to the mass's dtype: cast first, a 5 cm box 1000 m from its frame's
+    origin lost 4e-4 of its inertia in float32 (stop 90's review)."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    centre = vertices.mean(axis=0)
+    local = from_mesh(_sized(vertices - centre, mass), mesh.faces, mass=mass)
+    return MassProperties(local.mass, local.com + _sized(centre, mass), local.inertia)
 
 
 def _lookup(table: dict, shape, what: str):

@@ -544,6 +544,23 @@ def test_a_mesh_part_wound_inward_is_refused_unless_it_is_a_cavity():
     assert float(inertia.volume(hollow)) == pytest.approx(64.0 - 1.0)
 
 
+def test_a_float32_mesh_far_from_its_origin_keeps_its_inertia():
+    """A stored Mesh's vertices were cast to the mass's dtype before the apex was
+    subtracted: in float32 a 10 x 6 x 4 cm box 1000 m from its frame's origin lost 4e-4 of
+    its inertia. Now about their mean in float64 first: float32's own rounding."""
+    half = np.array([0.05, 0.03, 0.02])
+    turn = Rotation.from_rotvec([0.4, -0.3, 0.8]).as_matrix()
+    expected = inertia.box(8 * np.prod(half), half).inertia
+    expected = turn @ np.asarray(expected) @ turn.T
+    for offset in (0.0, 1e3):
+        where = offset * np.array([1.0, 0.5, 0.2])
+        vertices, faces = _box_mesh(half, turn, where)
+        props = inertia.mass_properties(shapes.Mesh(vertices, faces), mass=jnp.float32(8 * np.prod(half)))
+        assert props.inertia.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(props.inertia), expected, rtol=0, atol=1e-6 * np.abs(expected).max())
+        np.testing.assert_allclose(np.asarray(props.com), where, rtol=1e-7, atol=1e-7)
+
+
 def test_solids_touching_along_an_edge_make_one_valid_mesh():
     """Two cubes sharing one edge: each direction of that edge is traversed twice. A valid
     solid, but it was refused as "traversed twice the same way (a face flipped or given
