@@ -553,6 +553,9 @@ def compose(parts: Sequence[MassProperties]) -> MassProperties:
     ``com = sum m_k c_k / M`` and ``I = sum I_k + m_k (|d_k|^2 E - d_k d_k^T)`` with
     ``d_k = c_k - com`` (parallel-axis theorem). The result is in the same frame. A part
     may have a negative mass (a hole cut out of a solid part); the total must be positive.
+    The primitives take positive masses only, so make a hole from the solid it removes,
+    with mass and inertia negated: ``MassProperties(-p.mass, p.com, -p.inertia)`` for
+    ``p = box(density * volume, half_extents).transformed(where)``.
     """
     if len(parts) == 0:
         raise ValueError("compose: give at least one part.")
