@@ -531,8 +531,9 @@ def rollout(
     8 to 16 steps of a longer one) that starts far from every contact is first run as
     plain free steps, and kept if none of them came near one (else run again as contact
     steps): the same states, and a gradient a quarter faster for the ball, twice as fast in
-    flight. Chunks and parts need a divisor of ``num_steps`` (of ``save_every``) from 2
-    to 16: a prime count (997 steps, not 1000) runs every step as a contact step, with the
+    flight. Chunks need a divisor of ``num_steps`` from 2 to 16 (``save_every=1``), parts a
+    divisor of ``save_every`` from 8 to 16: a prime ``num_steps`` (997, not 1000) runs each
+    step as a contact step (which still skips its contact work far from contact), with the
     same states and without that speed-up.
 
     Returns:
