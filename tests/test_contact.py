@@ -2163,6 +2163,25 @@ def test_heavy_box_on_a_light_one_holds(solver, bound):
     assert penetration <= bound
 
 
+def test_a_1000_to_1_stack_in_float32_does_not_sink_under_the_exact_solver():
+    """A 1000 kg box on a 1 kg one, float32, ``solver="exact"``, 2 s at 1 ms. The exact
+    solve's regularisation (``A + eps I``, eps 6.4e-6 of the mean diagonal in float32) had
+    biased its normal velocities by ``eps * lambda``: the light box sank into the ground at
+    5.6e-5 m/s, steadily (1.1e-4 m at 2 s, under the 1 mm slop, so nothing pushed back).
+    With the proximal term the ground holds to 1.1e-6 m (measured). The pair between the
+    boxes still sinks, more slowly (5.0e-5 m at 2 s, 1.3e-4 m before; float64: 2e-8 m):
+    not diagnosed; bounded here by the 1 mm of the issue's heavy-on-light item."""
+    scene, params, state = stack(2, masses=[1.0, 1000.0])
+    params = scene.params(friction=0.5, dtype=jnp.float32)
+    state = scene.state(params, position=np.asarray(state.position))
+    step = rb.make_step(scene, SPLIT, 1e-3, contact=rb.ContactSettings(solver="exact"))
+    _, traj = jax.jit(lambda p, s: rb.rollout(step, p, s, 2000, save_every=100))(params, state)
+    z = np.asarray(traj.position[:, :, 2], np.float64)
+    assert np.all(np.isfinite(z))
+    assert (0.1 - z[:, 0]).max() <= 1e-5
+    assert (0.2 - (z[:, 1] - z[:, 0])).max() <= 1e-3
+
+
 def test_a_frictionless_heavy_box_on_a_light_one_stays_put_under_pgs():
     """A box (0.1, 0.15, 0.05) m of 17.9 or 100 kg on a 1 kg box (0.2, 0.2, 0.1) m on the
     ground, frictionless, both flat and centred, PGS, 2 s at 1 ms: nothing pushes either
