@@ -76,7 +76,7 @@ class Params(eqx.Module):
         Not validated here (it works on traced values): a step checks the shapes when it is
         traced, and :meth:`jaxrb.Scene.check_params` checks the values.
         """
-        return dataclasses.replace(self, **changes)
+        return _replace(self, changes)
 
 
 class State(eqx.Module):
@@ -108,8 +108,21 @@ class State(eqx.Module):
     contact_impulse: Float[Array, "c 3"] | None = None
 
     def replace(self, **changes) -> State:
-        """A copy with some fields changed, e.g. ``state.replace(velocity=v)``."""
-        return dataclasses.replace(self, **changes)
+        """A copy with some fields changed, e.g. ``state.replace(velocity=v)``. Only
+        ``rotation`` and ``contact_impulse`` may be ``None``."""
+        return _replace(self, changes)
+
+
+def _replace(module, changes: dict):
+    """``dataclasses.replace``, with a message naming the field where an array is required
+    and ``None`` was given (the converter's own error named none)."""
+    optional = {f.name for f in dataclasses.fields(module) if f.default is None}
+    for name, value in changes.items():
+        if value is None and name not in optional:
+            kind = type(module).__name__
+            raise ValueError(f"{kind}.replace({name}=None): {kind}.{name} is required, an array; "
+                             f"only {sorted(optional) or 'no field'} may be None")
+    return dataclasses.replace(module, **changes)
 
 
 def rotation_matrix(state: State) -> Float[Array, "n 3 3"]:

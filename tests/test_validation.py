@@ -567,6 +567,12 @@ def test_small_input_mistakes_are_explained():
     assert rb.collide(rb.Sphere(0.1), *pose, rb.Plane(), margin=jnp.asarray(0.01)).active.shape == (1,)
 
     params = scene.params()
+    # "None is not a valid value for jnp.array", naming no field.
+    with pytest.raises(ValueError, match=r"State.replace\(time=None\): State.time is required"):
+        scene.state(params).replace(time=None)
+    with pytest.raises(ValueError, match=r"Params.replace\(friction=None\): Params.friction is required"):
+        params.replace(friction=None)
+    assert scene.state(params).replace(contact_impulse=None).contact_impulse is None
     with pytest.raises(ValueError, match="max_steps must be a positive integer"):
         rb.identify.fit(lambda p: jnp.sum(p.mass), scene, params, "mass", max_steps=0, progress=False)
     # Counts beyond int32 had passed the checks and failed later with an OverflowError.
