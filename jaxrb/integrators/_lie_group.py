@@ -31,6 +31,23 @@ def dexp_inverse(theta, omega):
     return omega - 0.5 * first + spatial.cross(theta, first) / 12.0
 
 
+def _shortest(theta):
+    """The rotation vector of ``exp(theta)`` with the least angle: ``theta`` itself where
+    ``|theta| <= pi``, else turned back along its axis by whole turns (``(..., 3)``, rad).
+
+    The same rotation, so a stage's attitude is unchanged; but ``dexp^-1`` grows like
+    ``|theta|^2``, and far past the step's stability limit the stages compounded it:
+    ``|theta|`` 1.2e3, 1.5e7 and 1e14 in one step at ``|omega| dt = 100``, which overflowed
+    float32 (NaN attitudes from ``|omega| dt`` of about 150). Below ``pi``, which is every
+    stage of an accurate step, the values are untouched, bit for bit.
+    """
+    angle_sq = jnp.sum(theta * theta, axis=-1, keepdims=True)
+    wrap = angle_sq > jnp.pi**2
+    angle = jnp.sqrt(jnp.where(wrap, angle_sq, 1.0))
+    turned = angle - 2.0 * jnp.pi * jnp.round(angle / (2.0 * jnp.pi))  # in [-pi, pi]
+    return jnp.where(wrap, theta * (turned / angle), theta)
+
+
 class RKMK4(Integrator):
     """Classical RK4 on the Lie algebra: the attitude moves only by exponentials.
 
@@ -50,14 +67,17 @@ class RKMK4(Integrator):
       renormalisation doing any work. Energy is not conserved: O(dt^4) error with a
       slow drift (not symplectic).
     * Cost: four force evaluations and four quaternion exponentials per step.
-    * Stability: explicit, so accuracy collapses once ``|omega| dt`` is of order 1, but
+    * Stability: explicit, so accuracy collapses once ``|omega| dt`` is of order 1 (the
+      energy error exceeds 100% from about 2.5: ``benchmarks/work_precision.py``), but
       with ``L`` exact and the attitude a rotation the energy stays bounded in
-      ``[|L|^2 / 2 I_max, |L|^2 / 2 I_min]``: no blow-up of the state. Its *derivatives*
-      do blow up there: the truncated ``dexp^-1`` series grows like ``|theta|^2`` in the
-      stages, which compound the rotation vector. A gradient through 200 steps (body
-      inertia (1, 2, 3), one spin direction) was 0.11 at ``|omega| dt = 1``, 0.17 at 2,
-      3e108 at 3, NaN at 4 and 16, where RK4's stayed below 0.1 (found by review, not
-      fixed). Differentiate it only at ``|omega| dt`` well below 3.
+      ``[|L|^2 / 2 I_max, |L|^2 / 2 I_min]``: no blow-up of the state. The truncated
+      ``dexp^-1`` series grows like ``|theta|^2``, and the stages compound the rotation
+      vector, so each stage takes the rotation vector of least angle (the same rotation;
+      untouched below ``pi``): without that, float32 attitudes turned NaN from ``|omega|
+      dt`` of about 150, and a gradient through 200 steps (inertia (1, 2, 3), one spin
+      direction) was 3e55 at ``|omega| dt = 3`` and NaN at 16; now it is 0.019, 0.53 and
+      1.97 at 3, 4 and 16 (9e15 at 100). Far past the limit such a gradient is finite but
+      says little: differentiate at ``|omega| dt`` well below 2.5.
     """
 
     order: ClassVar[int] = 4
@@ -87,10 +107,12 @@ class RKMK4(Integrator):
                 a = node * dt  # the classical tableau: a_{i,i-1} = c_i, other a_ij = 0
                 increment = tuple(a * k for k in slopes[-1])
             theta, dx, dv, dl = increment
+            theta = _shortest(theta)
             slopes.append(stage(theta, state.position + dx, state.velocity + dv,
                                 state.angular_momentum + dl, node))
         total = [sum(w * k[j] for w, k in zip(_WEIGHTS, slopes, strict=True)) for j in range(4)]
         theta, dx, dv, dl = (dt * t for t in total)
+        theta = _shortest(theta)
         orientation = spatial.quat_normalize(spatial.quat_multiply(spatial.quat_exp(theta), q0))
         return State(
             position=state.position + dx,
