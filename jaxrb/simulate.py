@@ -154,7 +154,11 @@ def make_step(
     :mod:`jaxrb.contact` (kick, contact solve, drift, kick, with the time of impact
     located inside the step), configured by ``contact`` (default
     :class:`jaxrb.ContactSettings()`); the integrator then supplies the torque-free drift
-    of the attitude. A scene without contacts compiles no contact code at all.
+    of the attitude, and such steps are second order in ``dt`` (kick-drift-kick). A step
+    in which no pair touches or closes is free flight: kick-drift-kick as well where
+    gravity is the only force (exact for it), else the integrator's own step, so that
+    flight keeps the integrator's order. A scene without contacts compiles no contact
+    code at all.
 
     With ``debug=True`` the step raises (also inside ``jit``, through
     ``equinox.error_if``) as soon as the state turns NaN or infinite, instead of letting
