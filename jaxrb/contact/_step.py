@@ -23,7 +23,9 @@ One step of length ``h`` from state ``s`` (all bodies at once):
 Without contacts this is Stoermer-Verlet: exact for constant gravity, second order. A step
 in which no pair touches at its start and none closes during its free flight takes exactly
 this branch (``_free_step``, chosen at run time by a cond), with the same arithmetic
-as the full step and none of its detection, solves or time-of-impact search. (Without
+as the full step and none of its detection, solves or time-of-impact search; in a scene
+with a force other than gravity, it is the integrator's own step instead (kick-drift-kick
+would make flight second order whatever the integrator). (Without
 the time-of-impact search, which is what finds the pairs that close, "touches" means
 "within the margin": the speculative contacts are what keep those from passing.)
 Resting on the ground, the drift velocity is exactly zero, so nothing creeps; the velocity
@@ -703,8 +705,8 @@ def far_from_contact(scene: Scene, settings: ContactSettings, dt: float, params:
 
 def free_step(scene: Scene, integrator, settings: ContactSettings, dt: float, params: Params, state: State,
               derived) -> State:
-    """The free branch of :func:`contact_step` (kick, drift, kick; the same arithmetic), for
-    a state where :func:`far_from_contact` holds."""
+    """The free branch of :func:`contact_step` (:func:`_free_step`), for a state where
+    :func:`far_from_contact` holds."""
     return _free_step(_Ctx(scene, layout_of(scene), integrator, settings, dt), params, state, derived)
 
 
@@ -713,8 +715,8 @@ def contact_step(scene: Scene, integrator, settings: ContactSettings, dt: float,
     """One step of a scene with contacts (see the module docstring).
 
     Far from everything (no pair touching at the start, none closing during the step's
-    free flight: :func:`_touching_distance`) it is the free step: kick, drift, kick, with no contact work, the
-    same arithmetic as the contact step takes there. Both branches are checkpointed: a
+    free flight: :func:`_touching_distance`) it is the free step (:func:`_free_step`), with
+    no contact work. Both branches are checkpointed: a
     ``lax.cond``'s linearisation outputs the residuals of both branches (zero-filled for the
     one not taken) and reverse mode would stack them at every step of a rollout; a
     checkpoint's residuals are its inputs. The cond itself is a :func:`branch` with
