@@ -259,7 +259,8 @@ def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) ->
         warnings.warn("The report has no scale for rounding (no measurement size and zero residuals), so a "
                       "parameter the data do not determine may be reported identifiable. Pass data= to the "
                       "fit or report, or measurement_size= to rb.identify.identifiability.", stacklevel=3)
-    weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if s <= max(rcond * top, floor)]
+    kept = sv > max(rcond * top, floor)  # the directions the data determine
+    weak = [(float(s / top), vt[k]) for k, s in enumerate(sv) if not kept[k]]
     # The fit spends one degree of freedom per direction it determines (the rank), not per
     # parameter: an undetermined direction moves no residual. With none to spare (m <= rank)
     # the noise variance cannot be estimated from the fit (an exact fit would claim zero
@@ -270,7 +271,6 @@ def _report(space, params: Params, theta, jac, res, rcond, size: float = 0.0) ->
     # pseudo-inverse's own cut (rcond^2 on J^T J) kept those below the absolute floor, so a
     # lone parameter at rounding level (the mass in free fall) got a covariance of 1e28 beside
     # its infinite standard error.
-    kept = np.array([s > max(rcond * top, floor) for s in sv], bool)
     scaled_cov = (vt[kept].T / sv[kept] ** 2) @ vt[kept]
     covariance = sigma2 * scale[:, None] * scaled_cov * scale[None, :]
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
