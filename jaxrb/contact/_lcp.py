@@ -76,10 +76,10 @@ def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
 
         return jax.lax.fori_loop(0, size, update, lam)
 
-    def shorter(lam, newton):
+    def shorter(lam, newton, w):
         """The first of the half, quarter and eighth Newton steps that lowers the merit, or
-        else a Gauss-Seidel sweep."""
-        now = merit(lam, a_mat @ lam + offset)
+        else a Gauss-Seidel sweep (``w``: ``lam``'s, ``A lam + offset``)."""
+        now = merit(lam, w)
         chosen, found = lam, jnp.zeros((), bool)
         for fraction in (0.5, 0.25, 0.125):
             trial = lam + fraction * (newton - lam)
@@ -108,7 +108,7 @@ def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
         # branch: computed every iteration, the sweep had made the exact solver's 5-box
         # stack 1.8x slower).
         full = merit(newton, a_mat @ newton + offset) < merit(lam, w)
-        return branch(full, lambda lam, newton: newton, shorter, lam, newton), None
+        return branch(full, lambda lam, newton, w: newton, shorter, lam, newton, w), None
 
     lam, _ = jax.lax.scan(iterate, jnp.where(active, jnp.maximum(lam_n, 0.0), 0.0), None, length=iterations)
     return lam
