@@ -1293,6 +1293,58 @@ def test_cores_within_round_off_take_the_fallback_normal_under_jit_and_vmap():
     np.testing.assert_allclose(crossing.gap[:, 0], -0.25, atol=1e-12)
 
 
+def test_parallel_capsules_whose_segments_overlap_take_the_fallback_normal_under_jit():
+    """Two capsules of one orientation whose segments overlap (coincident centres, or
+    collinear and shifted along the axis). Under jit the equal axes came out apart by
+    round-off, whose normalised cross product passed the parallel test: the normal was an
+    arbitrary direction (0.56 along the axis), with derivatives of 2e16 in the attitudes.
+    It is now the documented fallback, A's body x axis, as without jit."""
+    q = np.concatenate([[np.cos(0.45)], np.sin(0.45) * np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])])
+    body = quat_matrix(q)
+
+    def turned(q, r):  # q turned by a small world rotation vector r
+        w = jnp.concatenate([jnp.ones(1, r.dtype), 0.5 * r])
+        w = w / jnp.sqrt(jnp.sum(w * w))
+        return jnp.concatenate([jnp.stack([w[0] * q[0] - jnp.dot(w[1:], q[1:])]),
+                                w[0] * q[1:] + q[0] * w[1:] + jnp.cross(w[1:], q[1:])])
+
+    for dtype in (jnp.float64, jnp.float32):
+        for shift in (0.0, 0.3):
+            def normal(x, dtype=dtype, shift=shift):
+                qq, centre = jnp.asarray(q, dtype), jnp.asarray(shift * body[:, 2], dtype)
+                return collision.capsule_capsule(Capsule(0.1, 0.4), centre, turned(qq, x[:3]), Capsule(0.2, 0.3),
+                                                 jnp.zeros(3, dtype), turned(qq, x[3:]), 0.1).normal[0]
+
+            x0 = jnp.zeros(6, dtype)
+            np.testing.assert_allclose(jax.jit(normal)(x0), body[:, 0], atol=1e-6)
+            assert np.abs(np.asarray(jax.jit(jax.jacrev(normal))(x0))).max() < 10.0
+
+
+@pytest.mark.parametrize(("capsule", "other", "height"), [(Capsule(0.1, 0.4), Box((0.6, 0.5, 0.4)), 0.5),
+                                                          (Capsule(0.1, 0.1), Cylinder(0.3, 0.35), 0.45)],
+                         ids=["box", "cylinder"])
+def test_a_capsule_lying_on_a_face_has_finite_float32_gradients(capsule, other, height):
+    """A capsule lying on a box's top face or a cylinder's cap, 64 random spins and offsets
+    about the vertical, float32, jit and vmap: the gradient of the active gaps' sum in the
+    capsule's position is (0, 0, 2) (two slots, each gap rising with its height). Along a
+    face the gap is linear in the segment's parameter, and float32 left a curvature of
+    round-off (3e-21) whose refused Newton step still had an infinite derivative: NaN in 14
+    of 64 poses on either shape."""
+    rng = np.random.default_rng(0)
+    spin = rng.uniform(0, 2 * np.pi, 64)
+    offset = rng.uniform(-0.3, 0.3, (64, 2)) * (1.0 if isinstance(other, Box) else 0.3)
+    lying = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])
+    qa = np.stack([quat_mul(np.array([np.cos(a / 2), 0.0, 0.0, np.sin(a / 2)]), lying) for a in spin])
+    pa = np.concatenate([offset, np.full((64, 1), height)], axis=1)
+
+    def gaps(pa, qa):
+        c = collision.collide(capsule, pa, qa, other, jnp.zeros(3, pa.dtype), jnp.array([1.0, 0, 0, 0], pa.dtype), 0.05)
+        return jnp.sum(jnp.where(c.active, c.gap, 0.0))
+
+    grad = jax.jit(jax.vmap(jax.grad(gaps)))(jnp.asarray(pa, jnp.float32), jnp.asarray(qa, jnp.float32))
+    np.testing.assert_allclose(np.asarray(grad), np.tile([0.0, 0.0, 2.0], (64, 1)), atol=1e-5)
+
+
 # ============================================================================ cylinder-box
 
 

@@ -133,9 +133,13 @@ def capsule_capsule(
     core_a = position_a[None, :] + s[:, None] * axis_a[None, :]
     core_b = position_b[None, :] + t[:, None] * axis_b[None, :]
     # Fallback normal for intersecting segments: the common perpendicular, or for
-    # parallel ones any perpendicular to A (A's body x axis).
-    perpendicular = spatial.safe_normalize(spatial.cross(axis_a, axis_b))
-    perpendicular = jnp.where(spatial.dot(perpendicular, perpendicular) > 0.5, perpendicular, axes_a[0])
+    # parallel ones (within sqrt(eps) rad) any perpendicular to A (A's body x axis). The
+    # test is on the cross product's length, not its normalised square: under jit, equal
+    # axes came out apart by round-off, whose normalised cross product (any direction,
+    # derivatives of 1e16) had passed it.
+    across = spatial.cross(axis_a, axis_b)
+    parallel = spatial.dot(across, across) <= jnp.finfo(dtype).eps
+    perpendicular = jnp.where(parallel, axes_a[0], spatial.safe_normalize(jnp.where(parallel, axes_a[0], across)))
     surface_a, normal, gap = rounded_points_contact(
         core_a, capsule_a.radius, core_b, capsule_b.radius, jnp.broadcast_to(perpendicular, (2, 3))
     )
@@ -383,11 +387,16 @@ def _newton_step(gap, s, half):
     only to ~1e-4 m; with 1e-6 there, float32 skipped the step and its point's derivative
     lacked the implicit term, off by up to 13 in ``tests/test_collision.py``'s skew
     capsule): at an end, or where ``gap'' = 0`` (a point above a face, whose distance is
-    linear), ``s`` is kept."""
+    linear), ``s`` is kept. A curvature under ``eps / half`` counts as zero: above a face
+    float32 left 3e-21 (1/m) of round-off, whose step was refused, but whose derivative
+    (``-value / curvature^2``, inf) made the refused branch's zero cotangent NaN: a capsule
+    lying on a box face or a cylinder's cap had NaN gradients in 14 of 64 random poses."""
     slope = jax.grad(gap)
     value, curvature = jax.jvp(slope, (s,), (jnp.ones_like(s),))
-    step = value / jnp.where(curvature > 0, curvature, 1.0)
-    small = (curvature > 0) & (jnp.abs(step) <= 64 * jnp.sqrt(jnp.finfo(s.dtype).eps) * half) & (jnp.abs(s) < half)
+    eps = jnp.finfo(s.dtype).eps
+    curved = curvature > eps / half
+    step = value / jnp.where(curved, curvature, 1.0)
+    small = curved & (jnp.abs(step) <= 64 * jnp.sqrt(eps) * half) & (jnp.abs(s) < half)
     return s - jnp.where(small, step, 0.0)
 
 
