@@ -754,6 +754,31 @@ def test_rod_landing_on_one_end(theta_deg):
     np.testing.assert_allclose(j, expected, rtol=1e-12)
 
 
+@pytest.mark.parametrize("moments", [(0.002, 0.006, 0.004), (0.004, 0.004, 0.004)], ids=["anisotropic", "uniform"])
+def test_a_centred_sphere_that_must_stick_leaves_its_impact_without_slip(moments):
+    """A centred sphere (R = 0.1 m, 1 kg) lands at v = (1, 1, -3) m/s without spin, e = 0.5,
+    mu = 5: the sticking impulse ``P = -K^-1 (u_t, (1 + e) u_n)`` lies inside the cone
+    (0.41 against 22.5 N s for the anisotropic inertia), so the contact point leaves at
+    ``(0, 0, 1.5)`` m/s. The central impact path (a centred sphere) took one
+    projected-gradient friction step, the sticking impulse only for an isotropic ``K_tt``:
+    the anisotropic sphere left slipping at 0.556 m/s."""
+    m, radius, e, mu = 1.0, 0.1, 0.5, 5.0
+    inertia = np.diag(moments)
+    v0 = np.array([1.0, 1.0, -3.0])
+    r = np.array([0.0, 0.0, -radius])
+    skew = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])
+    k_matrix = np.eye(3) / m - skew @ np.linalg.inv(inertia) @ skew
+    impulse = -np.linalg.solve(k_matrix, np.array([v0[0], v0[1], (1 + e) * v0[2]]))
+    assert np.hypot(impulse[0], impulse[1]) <= mu * impulse[2]
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(radius), mass=m, inertia=moments)], gravity=None,
+                     ground=rb.Plane(), contacts="all")
+    params = scene.params(restitution=e, friction=mu)
+    after = rb.contact.resolve_impacts(scene, params, scene.state(params, position=(0, 0, radius), velocity=tuple(v0)))
+    np.testing.assert_allclose(after.velocity[0], v0 + impulse / m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rb.angular_velocity(params, after)[0], np.linalg.solve(inertia, np.cross(r, impulse)),
+                               rtol=0, atol=1e-11)
+
+
 @pytest.mark.parametrize(("e", "mu"), [(1.0, 10.0), (0.5, 10.0), (1.0, 0.3), (0.5, 0.3)])
 def test_friction_keeps_the_rebound_of_an_off_centre_impact(e, mu):
     """A rod (capsule, r = 2 cm, half length 0.3 m) at 45 degrees, falling at 3 m/s onto one
