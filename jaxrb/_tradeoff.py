@@ -234,7 +234,8 @@ class TradeoffResult:
     def cheapest(self, tolerance: float, metric: str = "attitude_error") -> dict[str, Any] | None:
         """The least-cost row whose ``metric`` is at most ``tolerance``, or ``None`` if no row reaches it."""
         meeting = [r for r in self._ok(metric) if r[metric] <= tolerance]
-        return min(meeting, key=lambda r: r["cost"]) if meeting else None
+        # Ties in cost go to the smaller error, as on the Pareto front.
+        return min(meeting, key=lambda r: (r["cost"], r[metric])) if meeting else None
 
     def to_markdown(self, metric: str = "attitude_error") -> str:
         """A Markdown table of every row; ``*`` marks the Pareto front of ``metric`` against cost."""
@@ -332,10 +333,13 @@ def _step_counts(dts, duration: float, num_compare: int, slack: float = 0.0) -> 
         return [num_compare * 2**k for k in range(8)]
     counts = []
     dts = np.atleast_1d(np.asarray(dts, dtype=float))
+    if dts.ndim != 1:
+        raise ValueError(f"dts must be a list of step sizes (s), got an array of shape {dts.shape}.")
     if dts.size == 0:
         raise ValueError("dts is empty; pass None for the default sweep of step sizes.")
     for dt in dts:
-        if not (math.isfinite(dt) and 0 < dt <= duration):
+        # A dt of the whole span passes though the duration's rounding puts it a hair above.
+        if not (math.isfinite(dt) and 0 < dt <= duration * (1 + 1e-9) + slack):
             raise ValueError(f"Every dt must be positive and at most t_final - state.time = {duration} s, got {dt}.")
         n = num_compare * max(1, round(duration / (dt * num_compare)))
         if abs(duration / n - dt) > 1e-9 * dt + slack / n:
@@ -432,8 +436,9 @@ def tradeoff(
     """
     _check_common(scene, params, state, t_final, num_compare)
     candidates = _candidates(integrators)
-    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+    if isinstance(repeats, bool) or not isinstance(repeats, numbers.Integral) or repeats < 1:
         raise ValueError(f"repeats must be a positive integer, got {repeats!r}.")
+    repeats = int(repeats)  # a NumPy integer would not go into the JSON
     t0 = float(state.time)
     duration = float(t_final) - t0
     # A float32 start time (0.1 -> 0.10000000149) moves the duration by its rounding.

@@ -219,6 +219,11 @@ def test_failed_rows_are_never_chosen():
     result = tradeoff.TradeoffResult(rows=[good, bad], times=np.array([1.0]))
     assert result.pareto() == [good] and result.cheapest(1.0) is good
     assert json.loads(result.to_json())["rows"][1]["attitude_error"] is None
+    # A tie in cost goes to the smaller error, the row on the Pareto front (it went to the first row).
+    worse = {**good, "attitude_error": 1e-3, "integrator": "C"}
+    better = {**good, "attitude_error": 1e-5, "integrator": "D"}
+    tied = tradeoff.TradeoffResult(rows=[worse, better], times=np.array([1.0]))
+    assert tied.pareto() == [better] and tied.cheapest(1e-2) is better
 
 
 # ------------------------------------------------------------------------ defaults, errors
@@ -247,6 +252,11 @@ def test_default_sweep_is_geometric_and_divides():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert tradeoff._step_counts([0.05], 1.1 - t0, 20, slack=4 * float(np.finfo(np.float32).eps) * t0) == [20]
+    # A dt of the whole span, whose duration rounds below it (0.3 - 0.1 = 0.19999999999999998),
+    # had been refused as longer than the span.
+    assert tradeoff._step_counts([0.2], 0.3 - 0.1, 1) == [1]
+    with pytest.raises(ValueError, match=r"dts must be a list of step sizes \(s\), got an array of shape \(1, 2\)"):
+        tradeoff._step_counts([[0.1, 0.05]], 1.0, 1)  # a TypeError about 0-dimensional arrays
 
 
 def test_a_scene_with_contacts_is_refused():
@@ -337,8 +347,9 @@ def test_float32_scene_runs_with_a_float32_reference():
     state = scene.state(params, position={"box": (0.5, 0.0, 1.0)}, body_angular_velocity={"box": (0.4, 1.0, -0.6)},
                         dtype=jnp.float32)
     result = tradeoff.tradeoff(scene, params, state, 1.0, integrators=[rb.integrators.RK4()], dts=[0.01],
-                               repeats=1, num_compare=5)
+                               repeats=np.int64(1), num_compare=5)  # a NumPy integer had been refused
     (row,) = result.rows
+    assert json.loads(result.to_json())["info"]["repeats"] == 1
     assert result.info["dtype"] == "float32" and result.info["reference"]["rtol"] == 1e-6
     # RK4 at dt = 0.01 is accurate to ~1e-8 in exact arithmetic; in float32 both it and
     # the reference (Dopri8 at rtol 1e-6) sit at ~1e-6: the row is finite and that small.
