@@ -68,7 +68,7 @@ class ContactSettings:
             than the default with ``"pgs"`` is refused: it would be ignored).
         warm_start: start each step's solve from the previous step's impulses (kept in
             ``State.contact_impulse``).
-        restitution_threshold: m/s. Impacts slower than this are plastic (``e = 0``), so a
+        restitution_threshold: m/s. Impacts at or below this speed are plastic (``e = 0``), so a
             resting body does not micro-bounce on the velocity gravity gives it in one step.
             A slot that the last step's solve held is compared without the velocity a
             resting body reports between steps (``dt/2`` of the forces: leapfrog's stagger,
