@@ -33,7 +33,7 @@ import numpy as np
 from .._branch import branch
 from .._implicit import implicit_root
 
-__all__ = ["coulomb_impulse", "energy_change", "fraction_within", "frictionless_impulse", "largest_fraction"]
+__all__ = ["coulomb_impulse", "energy_change", "fraction_within", "frictionless_impulse", "largest_fraction", "solve2"]
 
 #: Iterations on the friction multiplier of a sliding contact: safeguarded Newton steps
 #: (a bisection of the bracket where a step would leave it), in one loop. On 20,000 random
@@ -57,7 +57,7 @@ def _reciprocal(x):
     return 1.0 / jnp.maximum(x, jnp.finfo(jnp.result_type(x)).tiny ** 0.25)
 
 
-def _solve2(a, lam, v):
+def solve2(a, lam, v):
     """``(a + lam I)^-1 v`` for a symmetric positive semi-definite ``a`` ``(2, 2)``; 0 where singular."""
     m00, m01, m11 = a[0, 0] + lam, a[0, 1], a[1, 1] + lam
     det = m00 * m11 - m01 * m01
@@ -85,7 +85,7 @@ def _impulse(lam, theta):
     ``theta = (k, u, mu, value, to_velocity)``, the flag as a number."""
     k, u, _, value, to_velocity = theta
     a, coupling, slip = k[1:, 1:], k[1:, 0], u[1:]
-    a_inv_c, a_inv_slip = _solve2(a, lam, coupling), _solve2(a, lam, slip)
+    a_inv_c, a_inv_slip = solve2(a, lam, coupling), solve2(a, lam, slip)
     normal = (value - u[0] + jnp.dot(coupling, a_inv_slip)) / _where_positive(k[0, 0] - jnp.dot(coupling, a_inv_c))
     p = jnp.where(to_velocity > 0, normal, value)
     return p, -(a_inv_slip + a_inv_c * p)

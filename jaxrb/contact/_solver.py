@@ -52,6 +52,7 @@ from ._coulomb import (
     fraction_within,
     frictionless_impulse,
     largest_fraction,
+    solve2,
 )
 
 #: The name (``jax.ad_checkpoint.checkpoint_name``) of a resting solve's impulses and
@@ -341,11 +342,8 @@ def _central_collision_update(c: _Colour, v, k, e, mu, eligible, threshold):
     j = jnp.where(hit, -(1.0 + e) * u[:, 0] * c.inv_k_nn, 0.0)
     radius = mu * j
     u_t = u[:, 1:]
-    k00, k01, k10, k11 = k[:, 1, 1], k[:, 1, 2], k[:, 2, 1], k[:, 2, 2]
-    det = k00 * k11 - k01 * k10
-    inv_det = _safe_reciprocal(jnp.where(hit, det, 0.0))
-    stick = -inv_det[:, None] * jnp.stack([k11 * u_t[:, 0] - k01 * u_t[:, 1], k00 * u_t[:, 1] - k10 * u_t[:, 0]], -1)
-    inside = hit & (det > 0) & (stick[:, 0] * stick[:, 0] + stick[:, 1] * stick[:, 1] <= radius * radius)
+    stick = -jax.vmap(solve2)(k[:, 1:, 1:], jnp.zeros_like(j), u_t)
+    inside = hit & (stick[:, 0] * stick[:, 0] + stick[:, 1] * stick[:, 1] <= radius * radius)
     slide = _friction_step(c, u_t, jnp.zeros((j.shape[0], 2), j.dtype), radius, hit)
     d_t = jnp.where(inside[:, None], stick, slide)
     impulse = jnp.concatenate([j[:, None], d_t], -1)
