@@ -97,10 +97,8 @@ class Step(eqx.Module):
             # branch adds the rotation matrix that a state from scene.state() lacks.
             state = self.integrator.prepare(state)
             new = contact_step(self.scene, self.integrator, self.contact, self.dt, params, state, derived)
-        elif derived is None:
-            new = self.integrator.step(self.scene, params, state, self.dt)
         else:
-            new = self.integrator.step(self.scene, params, state, self.dt, derived)
+            new = self.integrator.step_using(self.scene, params, state, self.dt, derived)
         if self.debug:
             new = _checked(self, new)
         return new

@@ -381,10 +381,7 @@ def _drift_kick(ctx: _Ctx, params: Params, state: State, velocity, momentum, dri
     20 m/s 0.64%.)"""
     moving = dataclasses.replace(state, velocity=drift_velocity, angular_momentum=momentum, contact_impulse=None)
     free = free_scene_of(ctx.scene)
-    if derived is None:
-        drifted = ctx.integrator.step(free, params, moving, h)
-    else:
-        drifted = ctx.integrator.step(free, params, moving, h, derived)
+    drifted = ctx.integrator.step_using(free, params, moving, h, derived)
     if turn is not None:
         rotation = spatial.quat_exp(turn)
         drifted = dataclasses.replace(drifted, orientation=spatial.quat_multiply(rotation, drifted.orientation))
@@ -406,10 +403,7 @@ def _free_step(ctx: _Ctx, params: Params, state: State, derived, h=None) -> Stat
         # flight under a time-dependent force: errors 1.0e-4 .. 1.6e-6 at dt = 1/50 .. 1/400
         # with a ground plane, 1.7e-9 .. 4.2e-13 without one).
         bare = dataclasses.replace(state, contact_impulse=None)
-        if derived is None:
-            end = ctx.integrator.step(ctx.scene, params, bare, h)
-        else:
-            end = ctx.integrator.step(ctx.scene, params, bare, h, derived)
+        end = ctx.integrator.step_using(ctx.scene, params, bare, h, derived)
         return dataclasses.replace(end, contact_impulse=jnp.zeros_like(state.contact_impulse))
     force, torque = wrench(ctx.scene, params, state)
     velocity = state.velocity + 0.5 * h * linear_acceleration(params, force)

@@ -49,6 +49,14 @@ class Integrator(eqx.Module):
         """Quantities derived from ``params`` alone for :meth:`step`; ``None`` if none."""
         return None
 
+    def step_using(self, scene: Scene, params: Params, state: State, dt, derived) -> State:
+        """:meth:`step`, given ``derived = self.precompute(params)``: passed on only where it
+        is not ``None``, so that integrators without derived quantities keep the plain
+        signature."""
+        if derived is None:
+            return self.step(scene, params, state, dt)
+        return self.step(scene, params, state, dt, derived)
+
 
 def truth_value(value):
     """``value`` as a Python ``bool`` when it is NumPy's; anything else unchanged, for
