@@ -107,7 +107,14 @@ class ContactSettings:
         position_iterations: PGS sweeps of the split-impulse penetration correction.
         position_correction: fraction of the penetration (beyond ``correction_slop``)
             removed per step. The correction moves positions only, never velocities, so it
-            adds no kinetic energy (split impulse; not Baumgarte on velocity).
+            adds no kinetic energy (split impulse; not Baumgarte on velocity). It keeps
+            neither the bodies' centre of mass nor their total angular momentum about a
+            fixed point: its shifts and turns are those of pseudo-impulses, and the moved
+            positions change ``r x p``. The change is first order in the overlap removed:
+            two free boxes (1 and 6 kg) sliding in contact after an oblique hit with spin,
+            overlapping by up to 5.45 mm at dt = 5 ms, changed their total angular
+            momentum by 0.9% (1.0e-3 at dt = 1 ms, 7.9e-5 at 0.2 ms); the impulses
+            themselves keep it to round-off.
         penetration_slop: m, penetration left alone by the time-of-impact search (keeps
             resting contacts in contact); a pair within twice it (or 0.1 mm) at a step's
             start touches.
