@@ -33,6 +33,8 @@ def _numbers(what: str, value) -> np.ndarray:
     """``value`` as a float array, or a ValueError that names the input (NumPy's own says
     only "could not convert string to float")."""
     try:
+        if isinstance(value, (str, bytes)):  # float("0.8") would pass: a mistake, not a number
+            raise TypeError
         return np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be numbers (a number, a sequence or an array), got {value!r}.") from None
@@ -98,9 +100,12 @@ class Body:
 
     def _resolve(self):
         where = f"Body {self.name!r}"
-        for field in ("mass", "density", "inertia"):
+        for field, unit in (("mass", "kg"), ("density", "kg/m^3"), ("inertia", "")):
             if getattr(self, field) is not None:
-                _numbers(f"{where}: {field}", getattr(self, field))
+                values = _numbers(f"{where}: {field}", getattr(self, field))
+                if unit and values.shape != ():  # float([2.0]) failed with NumPy's own words
+                    raise ValueError(f"{where}: {field} must be one number ({unit}), got shape {values.shape}: "
+                                     f"{getattr(self, field)!r}.")
         if self.mass_properties is not None:
             if self.mass is not None or self.density is not None or self.inertia is not None:
                 raise ValueError(
@@ -465,7 +470,7 @@ class Scene:
             # through, as in the array form. Concrete values are validated below.
             mass_arr = jnp.asarray(defaults_mass, dtype=dtype)
             for name, v in mass.items():
-                v = jnp.asarray(v, dtype=dtype)
+                v = jnp.asarray(v if _is_traced(v) else _numbers(f"mass[{name!r}]", v), dtype=dtype)
                 if v.shape != ():
                     raise ValueError(f"mass[{name!r}] must be a scalar (kg), got shape {v.shape}.")
                 mass_arr = mass_arr.at[self.index(name)].set(v)
@@ -476,7 +481,7 @@ class Scene:
         elif isinstance(inertia, Mapping):
             inertia_arr = jnp.asarray(defaults_inertia, dtype=dtype)
             for name, v in inertia.items():
-                v = jnp.asarray(v, dtype=dtype)
+                v = jnp.asarray(v if _is_traced(v) else _numbers(f"inertia[{name!r}]", v), dtype=dtype)
                 v = jnp.diag(v) if v.shape == (3,) else v
                 if v.shape != (3, 3):
                     raise ValueError(f"inertia[{name!r}] must be 3 principal moments or a 3x3 tensor (kg m^2), "
@@ -527,7 +532,7 @@ class Scene:
         p = len(pairs)
         low, high = (0.0, 1.0) if what == "restitution" else (0.0, np.inf)
         if not isinstance(value, Mapping):
-            arr = jnp.asarray(value, dtype=dtype)
+            arr = jnp.asarray(value if _is_traced(value) else _numbers(what, value), dtype=dtype)
             if arr.shape not in ((), (p,)):
                 raise ValueError(
                     f"{what} must be one value, a ({p},) array (one per contact pair, in the order "
@@ -537,9 +542,14 @@ class Scene:
             # unused, but 5.0 or NaN is a mistake all the same); check_params checks the rest.
             if not p and not _is_traced(value):
                 v = np.asarray(value, dtype=float)
-                if not (np.isfinite(v) and low <= v <= high):
+                if not np.all(np.isfinite(v) & (low <= v) & (v <= high)):  # v may be () or (0,)
                     raise ValueError(f"{what} must lie in [{low}, {high}], got {value!r}.")
             return jnp.broadcast_to(arr, (p,))
+        for key in value:
+            if not (isinstance(key, str) or (isinstance(key, tuple) and len(key) == 2
+                                             and all(isinstance(n, str) for n in key))):
+                raise ValueError(f"{what}: a dict's keys are body or plane names ('ball') or pairs of them "
+                                 f"(('ball', 'ground')), got the key {key!r}.")
         per_body = {k: v for k, v in value.items() if isinstance(k, str)}
         per_pair = {tuple(k): v for k, v in value.items() if not isinstance(k, str)}
         in_pairs = {n for pair in pairs for n in pair}
@@ -552,8 +562,10 @@ class Scene:
                 raise ValueError(f"{what}[{name!r}]: {name!r} is in no contact pair of this scene, so its {what} "
                                  f"would be ignored; the pairs are {list(pairs)}.")
             # Checked before they are combined: max(-3, 0) and sqrt(-0.4 * -0.9) would pass.
+            if _is_traced(v) and np.shape(v) != ():
+                raise ValueError(f"{what}[{name!r}] must be one number, got shape {np.shape(v)}.")
             if not _is_traced(v):
-                v = np.asarray(v, dtype=float)
+                v = _numbers(f"{what}[{name!r}]", v)
                 if v.shape != () or not np.isfinite(v) or not low <= v <= high:
                     raise ValueError(f"{what}[{name!r}] must be one number in [{low}, {high}], got {v!r}.")
         for key in per_pair:
@@ -671,9 +683,9 @@ class Scene:
                 f"pairs {list(self.contact_pairs)}."
             )
 
-    def _warn_inside_planes(self, position: np.ndarray) -> None:
-        """Warn for each body in a contact pair with a plane whose centre ``position[i]`` (m)
-        lies on that plane's solid side (``normal . x < offset``). A wall given with its
+    def _warn_inside_planes(self, centres: np.ndarray) -> None:
+        """Warn for each body in a contact pair with a plane whose shape's centre ``centres[i]``
+        (m, world frame) lies on that plane's solid side (``normal . x < offset``). A wall given with its
         normal pointing out of the free space makes the whole free side solid, and the
         contact step then pushes every body out of it at once. (A warning, not an error: a
         deliberately deep start is how ``make_step(..., debug=True)`` is tried out.)"""
@@ -682,14 +694,14 @@ class Scene:
             if plane_name not in planes:
                 continue
             plane = planes[plane_name]
-            depth = plane.offset - float(np.dot(plane.normal, position[index[body]]))
+            depth = plane.offset - float(np.dot(plane.normal, centres[index[body]]))
             if depth > 0:
                 flipped = _plane_repr([-x for x in plane.normal], -plane.offset)
                 warnings.warn(
-                    f"Body {body!r} starts with its centre {depth:.3g} m inside {plane_name!r}, on its solid side: "
-                    f"{_plane_repr(plane.normal, plane.offset)} is solid where normal . x < offset, and the contact "
-                    f"step will push the body out at once. If the plane should keep bodies on the side where this "
-                    f"one is, give it the opposite normal and offset: {flipped}.",
+                    f"Body {body!r} starts with its shape's centre {depth:.3g} m inside {plane_name!r}, on its solid "
+                    f"side: {_plane_repr(plane.normal, plane.offset)} is solid where normal . x < offset, and the "
+                    f"contact step will push the body out at once. If the plane should keep bodies on the side "
+                    f"where this one is, give it the opposite normal and offset: {flipped}.",
                     UserWarning, stacklevel=3)
 
     def state(
@@ -742,8 +754,6 @@ class Scene:
                              f"angular_momentum; got {given}.")
         zeros3 = np.zeros(3)
         position = self._per_body("position", position, (3,), zeros3, dtype)
-        if not _is_traced(position):
-            self._warn_inside_planes(np.asarray(position, dtype=float))
         velocity = self._per_body("velocity", velocity, (3,), zeros3, dtype)
         orientation = self._per_body("orientation", orientation, (4,), np.array([1.0, 0, 0, 0]), dtype)
         if not _is_traced(orientation):
@@ -753,6 +763,14 @@ class Scene:
                 raise ValueError(f"orientation of {names} is not a unit quaternion (norms {norms[bad]}). "
                                  + spatial.UNIT_QUATERNION_ADVICE)
         orientation = spatial.quat_normalize(orientation)
+        if not _is_traced((position, orientation)):
+            # The shapes' centres (a shape offset from the centre of mass turns with the body),
+            # as the narrow phase places them: the centre of mass had been tested, which warned
+            # for a sphere 0.3 m clear of a wall and missed one 0.45 m inside it.
+            offsets = np.asarray([b.shape_offset for b in self.bodies], dtype=float).reshape(-1, 3)
+            centres = np.asarray(position, float) + np.asarray(spatial.quat_rotate(np.asarray(orientation, float),
+                                                                                    offsets))
+            self._warn_inside_planes(centres)
         if angular_momentum is not None:
             l_world = self._per_body("angular_momentum", angular_momentum, (3,), zeros3, dtype)
         elif angular_velocity is None and body_angular_velocity is None:

@@ -35,8 +35,15 @@ __all__ = [
 ]
 
 
+def _not_text(value) -> None:
+    """Raise TypeError for a string: ``float("0.1")`` and ``tuple("123")`` would pass as numbers."""
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"a string, {value!r}")
+
+
 def _positive(owner: str, name: str, value: float) -> float:
     try:
+        _not_text(value)
         value = float(value)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{owner}.{name} must be a number, got {value!r}.") from err
@@ -50,6 +57,7 @@ def _positive(owner: str, name: str, value: float) -> float:
 
 def _positive_tuple(owner: str, name: str, values, size: int) -> tuple[float, ...]:
     try:
+        _not_text(values)
         values = tuple(values)
     except TypeError as err:
         raise ValueError(f"{owner}.{name} must be a sequence of {size} numbers, got {values!r}.") from err
@@ -377,13 +385,18 @@ class Plane(Shape):
 
     def __post_init__(self):
         try:
+            for x in (self.normal, *self.normal):
+                _not_text(x)
             n = tuple(float(x) for x in self.normal)
         except (TypeError, ValueError):
             n = ()
-        norm = math.sqrt(sum(x * x for x in n))
+        # hypot, not the square root of the sum of squares, which under- and overflowed:
+        # (0, 0, 1e-170) was refused as zero and (3e-160, 0, 4e-160) stored (0.6000033, 0, 0.8000045).
+        norm = math.hypot(*n)
         if len(n) != 3 or not norm > 0 or not math.isfinite(norm):
             raise ValueError(f"Plane.normal must be a non-zero 3-vector, got {self.normal!r}.")
         try:
+            _not_text(self.offset)
             offset = float(self.offset)
         except (TypeError, ValueError):
             offset = math.nan

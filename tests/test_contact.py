@@ -1585,7 +1585,7 @@ def test_a_body_started_on_a_planes_solid_side_is_warned_of_with_the_flipped_pla
     are not."""
     body = rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)
     wrong = rb.Scene([body], ground=rb.Plane(), walls={"wall": rb.Plane((1.0, 0.0, 0.0), 0.5)}, contacts="all")
-    with pytest.warns(UserWarning, match=r"'ball' starts with its centre 0\.5 m inside 'wall'.*"
+    with pytest.warns(UserWarning, match=r"'ball' starts with its shape's centre 0\.5 m inside 'wall'.*"
                                          r"opposite normal and offset: rb\.Plane\(\(-1, 0, 0\), -0\.5\)\."):
         wrong.state(position=(0.0, 0.0, 0.5))
     right = rb.Scene([body], ground=rb.Plane(), walls={"wall": rb.Plane((-1.0, 0.0, 0.0), -0.5)}, contacts="all")
@@ -1597,6 +1597,25 @@ def test_a_body_started_on_a_planes_solid_side_is_warned_of_with_the_flipped_pla
         jax.jit(lambda p: wrong.state(position=p).position)(jnp.array([0.0, 0.0, 0.5]))
     with pytest.warns(UserWarning, match=r"0\.2 m inside 'ground'"):
         right.state(position=(0.0, 0.0, -0.2))
+    # The shape's centre, turned with the body, not the centre of mass: a ball beside a 3 kg
+    # point mass 0.6 m away (centre of mass 0.45 m from the ball's centre) had been warned of
+    # with its centre of mass inside the wall and the ball clear, and not with the ball inside.
+    for side, x, angle, depth in ((1.0, 1.05, 0.0, None), (-1.0, 0.9, 0.0, 0.35), (1.0, 1.05, np.pi, 0.5)):
+        parts = rb.inertia.compose([rb.inertia.sphere(1.0, 0.1),
+                                    rb.inertia.from_point_masses([3.0], [[0.6 * side, 0.0, 0.0]])])
+        lopsided = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass_properties=parts)], gravity=None,
+                            walls={"wall": rb.Plane((-1.0, 0.0, 0.0), -1.0)}, contacts="all")
+        turned = (np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            state = lopsided.state(position=(x, 0.0, 0.0), orientation=turned)
+        shown = [str(w.message) for w in caught if "inside 'wall'" in str(w.message)]
+        overlap = float(rb.contact.penetration(lopsided, state))
+        if depth is None:
+            assert not shown and overlap == 0.0, shown
+        else:
+            assert len(shown) == 1 and f"{depth:.3g} m inside 'wall'" in shown[0], shown
+            assert overlap == pytest.approx(depth + 0.1, abs=1e-9)
 
 
 @pytest.mark.parametrize("dt", [1e-3, 1e-2])

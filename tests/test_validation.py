@@ -618,3 +618,41 @@ def test_inputs_of_the_wrong_kind_get_a_value_error_that_names_them():
                         (lambda: scene.state(params, velocity={"b": "x"}), r"velocity\['b'\]")):
         with pytest.raises(ValueError, match=name + " must be numbers"):
             build()
+
+
+def test_scene_inputs_found_by_stop_92s_review():
+    """Each of these had passed silently or failed with a message that named neither the
+    input nor the fix (stop 92's review of the scene API)."""
+    ball = rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)
+    # A scene without contact pairs takes its own empty per-pair arrays back ("the truth value
+    # of an empty array is ambiguous" before).
+    free = rb.Scene([ball])
+    again = free.params(restitution=free.params().restitution, friction=np.zeros(0))
+    assert again.restitution.shape == again.friction.shape == (0,)
+    with pytest.raises(ValueError, match=r"restitution must lie in \[0.0, 1.0\]"):
+        free.params(restitution=1.5)  # still checked where no pair keeps it
+    # One number per body, traced or not (a traced (1,) array failed in jnp.stack).
+    scene = rb.Scene([ball], ground=rb.Plane(), contacts="all")
+    with pytest.raises(ValueError, match=r"friction\['ball'\] must be one number, got shape \(1,\)"):
+        jax.grad(lambda x: scene.params(friction={"ball": x}).friction.sum())(jnp.ones(1))
+    # Dict keys that are neither a name nor a pair of names; values that are not numbers.
+    with pytest.raises(ValueError, match="a dict's keys are body or plane names"):
+        scene.params(restitution={0: 0.5})
+    with pytest.raises(ValueError, match=r"mass\['ball'\] must be numbers"):
+        scene.params(mass={"ball": "heavy"})
+    with pytest.raises(ValueError, match=r"inertia\['ball'\] must be numbers"):
+        scene.params(inertia={"ball": "round"})
+    # A body's mass and density are one number each (TypeErrors from float() before).
+    for kwargs in ({"shape": rb.Sphere(0.1), "mass": [2.0]}, {"mass": [2.0], "inertia": (1.0, 1.0, 1.0)},
+                   {"shape": rb.Sphere(0.1), "density": np.array([1000.0, 2000.0])}):
+        with pytest.raises(ValueError, match=r"Body 'b': (mass|density) must be one number \((kg|kg/m\^3)\)"):
+            rb.Body("b", **kwargs)
+    # Strings are not numbers, although float("0.8") and tuple("123") would read them.
+    for make in (lambda: rb.Box("123"), lambda: rb.Sphere("0.1"), lambda: rb.Plane("001"),
+                 lambda: rb.Plane((0.0, 0.0, 1.0), "1"), lambda: scene.params(restitution="0.8"),
+                 lambda: scene.params(friction={"ball": "0.5"})):
+        with pytest.raises(ValueError):
+            make()
+    # A plane's normal is normalised without under- or overflow.
+    assert rb.Plane((3e-160, 0.0, 4e-160)).normal == (0.6, 0.0, 0.8)
+    assert rb.Plane((0.0, 0.0, 1e-170)).normal == rb.Plane((0.0, 0.0, 1e160)).normal == (0.0, 0.0, 1.0)
