@@ -31,6 +31,7 @@ are chosen per field: all of it, a list of body names (per-body fields) or conta
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.flatten_util
@@ -64,9 +65,13 @@ def inertia_from_unconstrained(z: jax.Array) -> jax.Array:
         jnp.stack([z[..., 4], z[..., 5], diag[..., 2]], -1),
     ], -2)
     second_moment = chol @ jnp.swapaxes(chol, -1, -2)
-    trace = jnp.trace(second_moment, axis1=-2, axis2=-1)
+    # I = tr(S) E - S, with each moment summed from the other two, I_ii = S_jj + S_kk: the
+    # trace minus S_ii cancelled, and a thin rod's small moment came back with a relative
+    # error of eps I_max / I_min (8e-8 for diag(1e-10, 1, 1), round trip).
+    s = jnp.diagonal(second_moment, axis1=-2, axis2=-1)
+    moments = jnp.stack([s[..., 1] + s[..., 2], s[..., 0] + s[..., 2], s[..., 0] + s[..., 1]], -1)
     eye = jnp.eye(3, dtype=z.dtype).reshape((1,) * (z.ndim - 1) + (3, 3))
-    return trace[..., None, None] * eye - second_moment
+    return moments[..., None] * eye - second_moment * (1.0 - eye)
 
 
 def inertia_to_unconstrained(inertia) -> np.ndarray:
@@ -83,8 +88,14 @@ def inertia_to_unconstrained(inertia) -> np.ndarray:
     if not np.all(np.isfinite(inertia)):
         raise ValueError(f"An inertia is not finite: {inertia}.")
     _check_symmetric(inertia, "An inertia")
-    half_trace = 0.5 * np.trace(inertia, axis1=-2, axis2=-1)
-    second_moment = half_trace[..., None, None] * np.eye(3) - 0.5 * (inertia + np.swapaxes(inertia, -1, -2))
+    # S = tr(I)/2 E - I, each S_ii = (I_jj + I_kk - I_ii)/2 summed as (small + (large - I_ii))/2:
+    # by the triangle inequality the difference of the two large moments is exact where a rod's
+    # small one would otherwise be lost in their sum.
+    symmetric = 0.5 * (inertia + np.swapaxes(inertia, -1, -2))
+    moments = np.diagonal(symmetric, axis1=-2, axis2=-1)
+    others = np.stack([moments[..., [1, 2]], moments[..., [0, 2]], moments[..., [0, 1]]], -2)  # (..., 3, 2)
+    s_diag = 0.5 * (others.min(-1) + (others.max(-1) - moments))
+    second_moment = -symmetric * (1.0 - np.eye(3)) + s_diag[..., None] * np.eye(3)
     try:
         chol = np.linalg.cholesky(second_moment)
     except np.linalg.LinAlgError:
@@ -354,7 +365,10 @@ class FreeParameters:
                 changes[field] = jnp.where(mask[:, None, None], value, self.params.inertia)
                 continue
             if field in ("mass", "linear_damping", "angular_damping"):
-                value = jnp.exp(u)
+                # Within the dtype's normal range: a Levenberg-Marquardt step of -1e3 in a log
+                # coordinate had made a mass exactly 0 (exp underflowed).
+                info = jnp.finfo(u.dtype)
+                value = jnp.exp(jnp.clip(u, math.log(info.tiny), math.log(info.max)))
             elif field == "restitution":
                 value = jax.nn.sigmoid(u)
             elif field == "friction":
