@@ -2772,3 +2772,27 @@ def test_a_scene_whose_slot_layout_crashed_xla_cpu_runs():
     finite, apart = _result_of_script(_PEN_OF_THREE, x64=True).split()
     assert finite == "True"
     assert 0.0 < -float(apart) < 0.3, apart  # the can is below the capsule, the two close
+
+
+def test_an_impact_at_a_steps_very_end_leaves_the_step_its_length():
+    """A ball falling at 5 m/s (no gravity) touches the ground exactly at the end of its
+    first 10 ms step, under a time-dependent force. The split leaves a remainder far shorter
+    than 1e-6 dt, which the step had stretched to 1e-6 dt: its time ran 1e-8 s past dt, the
+    ball flew on 2.5e-8 m after the bounce, and the step-by-step loop left ``rollout`` (which
+    resets the time to t0 + k dt) by 7e-8 m/s under the force (stop 92's review)."""
+    push = rb.ExternalWrench(lambda t, p, s: (jnp.zeros_like(s.position).at[:, 0].set(100.0 * t),
+                                              jnp.zeros_like(s.position)))
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), gravity=None,
+                     forces=[push], contacts="all")
+    params = scene.params(restitution=0.5, friction=0.0)
+    step = rb.make_step(scene, rb.integrators.RK4(), 1e-2)
+    state = step.prepare(scene.state(params, position=(0.0, 0.0, 0.15), velocity=(0.0, 0.0, -5.0)))
+    one = jax.jit(step)(params, state)
+    assert abs(float(one.time) - 0.01) <= 1e-17
+    assert abs(float(one.position[0, 2]) - 0.1) <= 1e-12 and float(one.velocity[0, 2]) == pytest.approx(2.5, abs=1e-12)
+    looped = state
+    for _ in range(4):
+        looped = jax.jit(step)(params, looped)
+    rolled, _ = jax.jit(lambda p, s: rb.rollout(step, p, s, 4))(params, state)
+    for a, b in ((looped.position, rolled.position), (looped.velocity, rolled.velocity), (looped.time, rolled.time)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-14)

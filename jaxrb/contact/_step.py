@@ -254,7 +254,11 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     distance of their centres is convex in time) lost 0.27% of the normal velocity they
     exchange, plastically, before their located impact."""
     scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
-    h = jnp.maximum(h, 1e-6 * ctx.dt)  # a zero-length remainder must not divide by zero
+    # The motion takes the part's own length, however short; only the divisions by it take a
+    # floor, so that a zero-length remainder divides by no zero. (Until stop 92 the length itself
+    # was raised to 1e-6 dt: an impact within that of a step's end made the step run up to
+    # 1e-6 dt past dt, and the step-by-step loop's time and motion left rollout's.)
+    h_div = jnp.maximum(h, 1e-6 * ctx.dt)
     half = 0.5 * h
     contact = detect(scene, layout, state, ctx.margin)
     if ahead is not None:
@@ -282,7 +286,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # threshold of |g| dt / 2 a table resting on the ground bounced on it when a box hit the
     # table, and the box rebounded 5.4% above the two-body closed form (0.01 m/s, dt = 10 ms).
     # Slots that were not held (a corner landing, a body arriving) are compared as they are.
-    stagger = (u_kicked - u_start) * (ctx.dt / h)
+    stagger = (u_kicked - u_start) * (ctx.dt / h_div)
     approach = jnp.where(held, u_start - stagger, u_start)
     fast = closing & (approach < -settings.restitution_threshold)
 
@@ -316,7 +320,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
     # Then resting contact: u_n >= 0 in contact, u_n >= -(gap - skin)/h ahead of it
     # (speculative). Within the skin, a slot is held: a resting slot's gap then moves its
     # target by nothing, not by its rounding over h (ContactSettings.skin).
-    target = -jnp.maximum(gap - settings.skin_for(gap.dtype), 0.0) / h
+    target = -jnp.maximum(gap - settings.skin_for(gap.dtype), 0.0) / h_div
     lam0 = lam0 if settings.warm_start else jnp.zeros_like(lam0)
     solved, lam = _run_solver(settings, layout, bodies, f, target, mu, contact.active, lam0)
     velocity = solved.velocity[: scene.num_bodies]
@@ -351,7 +355,7 @@ def _regular(ctx: _Ctx, params: Params, state: State, h, lam0, derived, held, bo
 
     def correct(still):
         return solve(still, f, literal_array(layout.colours),
-                     settings.position_correction * depth / h, jnp.zeros_like(mu), push,
+                     settings.position_correction * depth / h_div, jnp.zeros_like(mu), push,
                      jnp.zeros_like(lam0), settings.position_iterations, normal_only=True,
                      tolerance=settings.tolerance_for(depth.dtype), frozen_derivative=False)[0]
 
