@@ -181,6 +181,26 @@ def test_grazes_are_located():
             np.testing.assert_allclose(time, 1.0 - np.sqrt(4 * R**2 - sideways**2) - x0, rtol=0, atol=1e-10)
 
 
+def test_impacts_50_microns_apart_are_located_apart():
+    """Two balls dropped side by side, one 5e-5 m higher (they never meet). Every slot within
+    the contact step's touching distance (0.1 mm) had taken part in an event's impact: the
+    higher ball bounced at the lower one's instant, 1.1e-5 s early, one impact was reported
+    instead of two, and its next apex was 1.8e-5 m high (stop 92's review)."""
+    scene = rb.Scene([rb.Body("a", shape=rb.Sphere(R), mass=1.0), rb.Body("b", shape=rb.Sphere(R), mass=1.0)],
+                     ground=rb.Plane(), contacts=[("a", "ground"), ("b", "ground")])
+    e, above = 0.8, 5e-5
+    params = scene.params(restitution=e, friction=0.0)
+    state = scene.state(params, position=[(0, 0, H + R), (1.0, 0, H + above + R)])
+    result = rb.ode.solve_with_impacts(scene, params, state, 0.6, max_impacts=4,
+                                       contact=rb.ContactSettings(restitution_threshold=0.0))
+    assert int(result.num_impacts) == 2
+    np.testing.assert_allclose(result.impact_times[:2], np.sqrt(2 * np.asarray([H, H + above]) / G), rtol=0,
+                               atol=1e-12)
+    height = np.asarray(result.final.position[:, 2]) - R
+    apex = height + np.asarray(result.final.velocity[:, 2]) ** 2 / (2 * G)
+    np.testing.assert_allclose(apex, e**2 * np.asarray([H, H + above]), rtol=0, atol=1e-12)
+
+
 def test_impacts_are_located_late_in_time_and_far_from_the_origin():
     """One ulp of t moves a gap by its rate times it, and one ulp of a large coordinate is
     above atol: a float64 drop started at t = 1e4 s, and a float32 drop from 20 m, had

@@ -456,23 +456,24 @@ def resolve_impacts(scene: Scene, params: Params, state: State, settings: Contac
     return impact_law(_Ctx(scene, layout_of(scene), None, settings, dt), params, state)
 
 
-def impact_law(ctx: _Ctx, params: Params, state: State) -> State:
+def impact_law(ctx: _Ctx, params: Params, state: State, touching=TOUCHING) -> State:
     """:func:`_impact` (Newton's law for slots faster than the threshold), then a second pass
     with threshold 0 and ``e = 0``: the plastic impulse for every touching slot that still
     approaches. (In a step the resting-contact solve stops those; at an instant nothing else
-    would, and the bodies would pass through.)"""
+    would, and the bodies would pass through.) ``touching``: m, the gap under which a slot
+    takes part."""
     plastic = dataclasses.replace(ctx, settings=dataclasses.replace(ctx.settings, restitution_threshold=0.0))
     return _impact(plastic, params.replace(restitution=jnp.zeros_like(params.restitution)),
-                   _impact(ctx, params, state))
+                   _impact(ctx, params, state, touching), touching)
 
 
-def _impact(ctx: _Ctx, params: Params, state: State) -> State:
+def _impact(ctx: _Ctx, params: Params, state: State, touching) -> State:
     scene, layout, settings = ctx.scene, ctx.layout, ctx.settings
     contact = detect(scene, layout, state, ctx.margin)
     bodies, position = _solver_bodies(params, state, state.velocity, state.angular_momentum)
     f = frames(bodies, layout.body_a, layout.body_b, contact.point, contact.normal, position)
     e, mu = _slot_coefficients(ctx, params)
-    touching = contact.active & (contact.gap <= TOUCHING)
+    touching = contact.active & (contact.gap <= touching)
     solved, _ = collisions(bodies, f, literal_array(layout.colours), literal_array(layout.pair_colours), e, mu,
                            touching, settings.restitution_threshold, settings.impact_iterations, layout.central)
     momentum = _omega_to_momentum(params, state, solved.angular_velocity, bodies.angular_velocity,
