@@ -38,6 +38,11 @@ def implicit_root(f, root, theta, slope_sign):
 def _implicit_root_jvp(f, slope_sign, primals, tangents):
     root, theta = primals
     _, d_theta = tangents
+    # The root again as this function of theta, so that it carries theta's tangents inside
+    # the rule: a second derivative then differentiates the slope and ``d_value`` along the
+    # root's own motion. (With the bare ``root``, which has no tangent, ``grad(grad(...))``
+    # of the root of ``r^2 - p`` came out 0 instead of -p^(-3/2)/4; stop 92's review.)
+    root = implicit_root(f, jax.lax.stop_gradient(root), theta, slope_sign)
     _, slope = jax.jvp(lambda r: f(r, theta), (root,), (jnp.ones_like(root),))
     _, d_value = jax.jvp(lambda th: f(root, th), (theta,), (d_theta,))
     slope = jnp.where(slope_sign * slope > 0, slope, slope_sign)
