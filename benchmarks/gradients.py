@@ -31,8 +31,12 @@ What it measures
       ``k ~ sqrt(steps)``, and without checkpointing for comparison. Memory: XLA's own
       buffer assignment for the compiled gradient (``memory_analysis()``: arguments +
       outputs + temporaries, which is the peak the program needs), and the peak resident
-      set (``ru_maxrss``) of a fresh process that runs only this measurement (so it
-      includes Python, jaxlib and the compiler, but no other benchmark).
+      set (``VmHWM``, ``_machine.peak_rss_bytes``) of a fresh process that runs only this
+      measurement. That is the process's high-water mark since it started: Python, jaxlib
+      and the compiles included, so it bounds the run's peak from above but does not
+      measure it. It is read before and after each variant's timed calls; the checkpointed
+      variant runs first, and the plain one's figure is set by its own compile (the rise
+      across its calls was 0 in stop 92's check). Compare the variants by XLA's figures.
 
     Peers (``benchmarks/peers.py``, MJX and Brax) run in another interpreter given by
     ``--peer-python``: the same gradient/forward ratio on their ball drop.
