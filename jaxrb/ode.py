@@ -533,8 +533,7 @@ def solve_with_impacts(
     check_inputs(scene, params, state, "rb.ode.solve_with_impacts")
     if not scene.contact_pairs:
         raise ValueError("solve_with_impacts needs a scene with contact pairs (Scene(..., contacts=...)).")
-    if isinstance(max_impacts, bool) or not isinstance(max_impacts, int) or max_impacts < 1:
-        raise ValueError(f"max_impacts must be a positive integer, got {max_impacts!r}.")
+    max_impacts = positive_count("max_impacts", max_impacts)  # np.int64 too (it had been refused)
     settings = contact if contact is not None else ContactSettings()
     if not isinstance(settings, ContactSettings):
         raise ValueError(f"contact must be an rb.ContactSettings(...), got {contact!r}.")

@@ -109,6 +109,11 @@ def test_a_scene_with_contacts_is_refused_by_the_contact_free_solve_and_bad_inpu
         rb.ode.solve_with_impacts(scene, params, state, 1.0, contact="pgs")
     with pytest.raises(ValueError, match="atol = 1e-16 is below what float64 resolves"):
         rb.ode.solve_with_impacts(scene, params, state, 1.0, atol=1e-16)
+    for count in (0, 2.0, True):
+        with pytest.raises(ValueError, match="max_impacts must be a positive integer"):
+            rb.ode.solve_with_impacts(scene, params, state, 1.0, max_impacts=count)
+    # A count of any integer type (np.int64 from a config array had been refused).
+    assert int(rb.ode.solve_with_impacts(scene, params, state, 0.5, max_impacts=np.int64(1)).num_impacts) == 1
     # Traced: an end time before the start had returned the start state, no impact, no error.
     solve = jax.jit(lambda s, t1: rb.ode.solve_with_impacts(scene, params, s, t1, max_impacts=2).final.time)
     with pytest.raises(Exception, match="need t1 > state.time"):
