@@ -56,7 +56,7 @@ def wrench(scene: Scene, params: Params, state: State) -> tuple[Float[Array, "n 
 
 def linear_acceleration(params: Params, force: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
     """``a_cm = F / M`` (m/s^2)."""
-    return force / params.mass[:, None]
+    return force / params.mass[..., None]
 
 
 def angular_acceleration(

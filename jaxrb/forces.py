@@ -71,7 +71,7 @@ class Gravity(ForceModel):
     """
 
     def wrench(self, params: Params, state: State) -> Wrench:
-        force = params.mass[:, None] * params.gravity[None, :]
+        force = params.mass[..., None] * params.gravity[..., None, :]
         return force, jnp.zeros_like(force)
 
 

@@ -214,7 +214,7 @@ def kinetic_energy(params: Params, state: State) -> Float[Array, " n"]:
 def potential_energy(params: Params, state: State) -> Float[Array, " n"]:
     """Gravitational potential ``-m g . x`` per body (J), zero at the world origin."""
     _same_bodies(params, state)
-    return -params.mass * spatial.dot(params.gravity[None, :], state.position)
+    return -params.mass * spatial.dot(params.gravity[..., None, :], state.position)
 
 
 def total_energy(params: Params, state: State) -> Float[Array, " n"]:
@@ -232,7 +232,9 @@ def total_energy(params: Params, state: State) -> Float[Array, " n"]:
 def linear_momentum(params: Params, state: State) -> Float[Array, "n 3"]:
     """``p = m v`` per body (kg m/s, world frame)."""
     _same_bodies(params, state)
-    return params.mass[:, None] * state.velocity
+    # [..., None]: stacked members (B, N) read as bodies on the last axis, as the energies do
+    # (mass[:, None] had paired member i with body i where B == N, and failed where not).
+    return params.mass[..., None] * state.velocity
 
 
 def angular_momentum_about(
@@ -245,5 +247,7 @@ def angular_momentum_about(
     """
     if point is not None and np.shape(point) != (3,):
         raise ValueError(f"point must be one (3,) world point (m), got shape {np.shape(point)}.")
-    r = state.position if point is None else state.position - jnp.asarray(point)[None, :]
+    if point is not None:  # in the state's dtype (a float64 point promoted a float32 state)
+        point = jnp.asarray(point, state.position.dtype).reshape((1,) * (state.position.ndim - 1) + (3,))
+    r = state.position if point is None else state.position - point
     return spatial.cross(r, linear_momentum(params, state)) + state.angular_momentum

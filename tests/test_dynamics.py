@@ -460,3 +460,26 @@ def test_rk4_at_large_spin_is_inaccurate_but_bounded(omega_h):
     e0 = float(rb.kinetic_energy(params, state)[0])
     print(f"|w|h = {omega_h}: max |dE/E| = {np.max(np.abs(energy / e0 - 1)):.3f}")
     assert np.max(np.abs(energy / e0 - 1)) > 0.1  # genuinely inaccurate: documented, not hidden
+
+
+def test_momenta_and_energies_of_stacked_members_are_each_members():
+    """Called directly on an ensemble's stacked arrays (mass (B, N), positions (B, N, 3)),
+    the helpers read bodies on the last axis, as ``jax.vmap`` gives them. ``linear_momentum``
+    (and ``angular_momentum_about`` through it) had read mass's first axis as the bodies:
+    member i took body i's mass where B == N, and a broadcast error came where not. A point
+    given as a list keeps a float32 state float32 (it had promoted it to float64)."""
+    scene = rb.Scene([rb.Body(f"b{i}", shape=rb.Sphere(0.1), mass=1.0) for i in range(3)])
+    rng = np.random.default_rng(3)
+    for members in (3, 4):
+        params = jax.vmap(lambda m: scene.params(mass=m))(jnp.asarray(rng.uniform(1.0, 3.0, (members, 3))))
+        states = jax.vmap(lambda x, v: scene.state(position=x, velocity=v))(
+            jnp.asarray(rng.normal(size=(members, 3, 3))), jnp.asarray(rng.normal(size=(members, 3, 3))))
+        point = [0.5, -1.0, 2.0]
+        for helper in (rb.linear_momentum, rb.potential_energy, rb.kinetic_energy,
+                       lambda p, s, point=point: rb.angular_momentum_about(p, s, point)):
+            np.testing.assert_allclose(helper(params, states), jax.vmap(helper)(params, states), rtol=1e-15)
+        momentum = np.asarray(params.mass)[..., None] * np.asarray(states.velocity)
+        np.testing.assert_allclose(rb.linear_momentum(params, states), momentum, rtol=1e-15)
+    params = scene.params(dtype=jnp.float32)
+    state = scene.state(params, position=np.ones((3, 3)), velocity=np.ones((3, 3)))
+    assert rb.angular_momentum_about(params, state, [0.0, 1.0, 0.0]).dtype == jnp.float32
