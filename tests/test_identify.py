@@ -146,6 +146,7 @@ def test_free_parameters_round_trip_and_masks():
     ({"mass": [5]}, "not a body of the scene"),
     ({"mass": np.array([0.5])}, "boolean mask or integer indices"),
     ({"restitution": ("a", "ground")}, "is a body, not a contact pair"),
+    (["mass", {"restitution": True}], "takes field names only"),
 ])
 def test_bad_free_specifications_are_explained(free, message):
     scene = rb.Scene([rb.Body("a", shape=rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
@@ -267,6 +268,10 @@ def test_fit_options_and_a_guess_without_a_finite_loss_are_explained():
         with pytest.raises(ValueError, match=r"must return one number, got shape \(2,\)"):
             rb.identify.fit(lambda p, d: p.mass - d, two, two.params(dtype=jnp.float64), "mass", data=data,
                             batched=batched, max_steps=5, progress=False)
+    # A friction_max beside a FreeParameters had been ignored without a word.
+    with pytest.raises(ValueError, match="whose own bound"):
+        rb.identify.fit(lambda p: p.mass[0], scene, guess, FreeParameters(scene, guess, "mass", friction_max=1.0),
+                        friction_max=3.0, progress=False)
     result = rb.identify.fit(lambda p: jnp.sqrt(p.mass[0] - 2.0), scene, guess, "mass", progress=False)
     assert not result.converged and result.steps == 0 and np.isnan(result.loss) and len(result.loss_history) == 0
     assert "the loss is nan at the initial guess" in result.message

@@ -208,6 +208,10 @@ class _Progress:
 
 def _space(scene, params, free, friction_max, for_fit: bool = True) -> FreeParameters:
     if isinstance(free, FreeParameters):
+        if friction_max != 2.0 and friction_max != free.friction_max:  # 2.0: the fitters' default
+            # It had been ignored without a word: the FreeParameters' own bound is the one used.
+            raise ValueError(f"friction_max={friction_max!r} was given with a FreeParameters, whose own bound "
+                             f"({free.friction_max!r}) is the one used: give it to FreeParameters(...) instead.")
         if for_fit and not free.for_fit:
             # Built for a report (any finite point): a fit also needs every free value inside
             # its domain, or its start is -inf (e = 0: logit 0) and the fit stalls there.

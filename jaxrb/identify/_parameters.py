@@ -179,6 +179,10 @@ class FreeParameters:
         if isinstance(spec, str):
             spec = {spec: True}
         elif not isinstance(spec, dict):
+            spec = list(spec)
+            if not all(isinstance(name, str) for name in spec):  # ["mass", {...}] failed as "unhashable type"
+                raise ValueError(f"free as a list takes field names only, got {spec!r}; to select entries of a "
+                                 f"field use a dict, e.g. {{'mass': ['ball'], 'restitution': True}}.")
             spec = dict.fromkeys(spec, True)
         if not spec:
             raise ValueError(f"Nothing is free: give at least one of {FIELDS} in free=.")
