@@ -526,8 +526,9 @@ def rollout(
             ``k ~ sqrt(num_steps)``.
         include_initial: also record the initial state, first.
 
-    With ``save_every=1`` and a scene of a few bodies, the states are stacked in chunks
-    of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
+    With ``save_every=1`` (and ``checkpoint=False``: a checkpointed rollout that records
+    every step runs step by step) and a scene of a few bodies, the states are stacked in
+    chunks of up to 16 steps by a nested loop, which XLA:CPU runs faster (the 1000-step bouncing
     ball's forward by 25%), with the values of the step-by-step loop. With contacts, a
     chunk (or, with ``save_every > 1``, a segment of ``save_every`` steps, or each part of
     8 to 16 steps of a longer one) that starts far from every contact is first run as
