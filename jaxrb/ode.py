@@ -635,15 +635,17 @@ def solve_with_impacts(
     term = diffrax.ODETerm(lambda t, y, args: field(t, y, args[0]))
     eps = jnp.finfo(dtype).eps
 
-    def impulse(s: State, touch) -> State:
+    def impulse(s: State, depth, gap_atol) -> State:
         """The impact at an event: the slots within ``touch`` (m) of touching. That is the
-        event's own pair (located to the root finder's tolerance, or restarted a few ulps
-        deep), chains of bodies touching it, and pairs at rest within the slop; not a pair
-        merely close. (The contact step's 0.1 mm had applied the impact of a ball 5e-5 m
-        above the ground beside the one that landed, 1.1e-5 s early, and its next apex came
-        out 1.8e-5 m high; stop 92's review.)"""
+        event's own pair (located to the root finder's tolerance, ``gap_atol``, in seconds
+        where the closing speed exceeds 1 m/s, or restarted ``depth`` deep), chains of
+        bodies touching it, and pairs at rest within the slop; not a pair merely close. (The
+        contact step's 0.1 mm had applied the impact of a ball 5e-5 m above the ground beside
+        the one that landed, 1.1e-5 s early, and its next apex came out 1.8e-5 m high; stop
+        92's review.)"""
         y = OdeState.from_state(s)
         _, before = gap_rates(s.time, y)
+        touch = jax.lax.stop_gradient(depth + gap_atol * jnp.maximum(jnp.max(jnp.abs(before)), 1.0))
         s = impact_law(ctx, params, s, touching=touch)  # Newton's law, then plastic for slower slots
         gaps, after = gap_rates(s.time, OdeState.from_state(s))
         # Rounding leaves ~eps of the approach speed; more means the sweeps did not finish.
@@ -672,11 +674,7 @@ def solve_with_impacts(
             t_end = sol.ts[-1]
             after = jax.tree.map(lambda x: x[-1], sol.ys).to_state(t_end)
             hit = jnp.asarray(sol.event_mask)
-            # The event's pair touches to the root's tolerance (``gap_atol``, in seconds where
-            # the closing speed exceeds 1 m/s) or a restart's ``depth``.
-            _, rates = gap_rates(t_end, OdeState.from_state(after))
-            touch = depth + gap_atol * jnp.maximum(jnp.max(jnp.abs(rates)), 1.0)
-            after = jax.lax.cond(hit, impulse, lambda s, touch: s, after, jax.lax.stop_gradient(touch))
+            after = jax.lax.cond(hit, impulse, lambda s, *_: s, after, depth, gap_atol)
             return after, hit
 
         running = current.time < t1
