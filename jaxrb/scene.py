@@ -20,7 +20,7 @@ import numpy as np
 from . import inertia as _inertia
 from . import spatial
 from .forces import AngularDamping, ForceModel, Gravity, LinearDamping
-from .shapes import Plane, Shape
+from .shapes import Plane, Shape, not_text
 from .state import Params, State, body_inertia
 
 __all__ = ["Body", "Scene", "GROUND"]
@@ -33,8 +33,7 @@ def _numbers(what: str, value) -> np.ndarray:
     """``value`` as a float array, or a ValueError that names the input (NumPy's own says
     only "could not convert string to float")."""
     try:
-        if isinstance(value, (str, bytes)):  # float("0.8") would pass: a mistake, not a number
-            raise TypeError
+        not_text(value)  # float("0.8") would pass: a mistake, not a number
         return np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be numbers (a number, a sequence or an array), got {value!r}.") from None

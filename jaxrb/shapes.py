@@ -35,7 +35,7 @@ __all__ = [
 ]
 
 
-def _not_text(value) -> None:
+def not_text(value) -> None:
     """Raise TypeError for a string: ``float("0.1")`` and ``tuple("123")`` would pass as numbers."""
     if isinstance(value, (str, bytes)):
         raise TypeError(f"a string, {value!r}")
@@ -43,7 +43,7 @@ def _not_text(value) -> None:
 
 def _positive(owner: str, name: str, value: float) -> float:
     try:
-        _not_text(value)
+        not_text(value)
         value = float(value)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{owner}.{name} must be a number, got {value!r}.") from err
@@ -57,7 +57,7 @@ def _positive(owner: str, name: str, value: float) -> float:
 
 def _positive_tuple(owner: str, name: str, values, size: int) -> tuple[float, ...]:
     try:
-        _not_text(values)
+        not_text(values)
         values = tuple(values)
     except TypeError as err:
         raise ValueError(f"{owner}.{name} must be a sequence of {size} numbers, got {values!r}.") from err
@@ -386,7 +386,7 @@ class Plane(Shape):
     def __post_init__(self):
         try:
             for x in (self.normal, *self.normal):
-                _not_text(x)
+                not_text(x)
             n = tuple(float(x) for x in self.normal)
         except (TypeError, ValueError):
             n = ()
@@ -396,7 +396,7 @@ class Plane(Shape):
         if len(n) != 3 or not norm > 0 or not math.isfinite(norm):
             raise ValueError(f"Plane.normal must be a non-zero 3-vector, got {self.normal!r}.")
         try:
-            _not_text(self.offset)
+            not_text(self.offset)
             offset = float(self.offset)
         except (TypeError, ValueError):
             offset = math.nan
