@@ -16,6 +16,7 @@ from . import kinematics as kinematics
 from . import ode as ode
 from . import shapes as shapes
 from . import spatial as spatial
+from . import viz as viz
 from ._tradeoff import TradeoffResult as TradeoffResult
 from ._tradeoff import comparison_times as comparison_times
 from ._tradeoff import plot_tradeoff as plot_tradeoff

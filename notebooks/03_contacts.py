@@ -246,6 +246,18 @@ slip_then_roll(can, v_can, r_omega_can, 2.0, 2 * V_BALL / 3, "can")
 plt.show()
 
 # %% [markdown]
+# `rb.viz` draws a scene's bodies as their shapes, at the poses the collisions see
+# (`rb.viz.draw(scene, state)` for one state), and animates a trajectory. The ball's and
+# the can's facets turn as they start to roll; the box slides without turning.
+
+# %%
+from IPython.display import HTML  # noqa: E402
+
+animation = rb.viz.animate(flat_scene, traj, every=5)  # one frame every 50 ms of the 1.5 s
+plt.close(animation.drawing.ax.figure)  # shown once, as the animation below, not also as a still
+HTML(animation.to_jshtml())
+
+# %% [markdown]
 # All three match the closed forms to about $10^{-6}$, at a step of 10 ms: a stop at
 # 1.019368 s after 2.548419 m; the ball rolling from 0.291248 s at 1.428571 m/s, the can
 # from 0.339789 s at 1.333333 m/s. (The times are
