@@ -3,8 +3,13 @@
 A jaxrb ensemble is ``jax.vmap`` over params and/or state, whose arrays then carry a
 leading ensemble axis of length ``E``. :func:`shard_ensemble` places those arrays so
 that each device holds ``E / D`` of the environments; ``jax.jit`` then runs the
-unchanged vmapped step or rollout on every device at once (SPMD), with no
-communication between devices because environments are independent.
+unchanged vmapped step or rollout on every device at once (SPMD). The environments are
+independent, and a free body's step needs no communication between devices. A step that
+can skip work (a contact scene's free branch, converged sweeps, the impact pass; an
+implicit integrator's Newton iterations) skips it only where no member of the whole
+ensemble needs it (``jaxrb/_branch.py``): that test is an all-reduce across the devices
+at every step (68 in a sharded rollout of balls on the ground), and each device runs a
+branch that a member on any device takes. The values are those of one device.
 
 On a CPU, JAX shows one device by default and a compiled step runs on one core. To use
 every core, ask for several CPU devices *before the first JAX computation*::

@@ -615,7 +615,9 @@ class Scene:
                 raise ValueError(f"Params.{field} has shape {value.shape}; this scene has {p} contact pairs "
                                  f"and needs one per contact pair, in the order of scene.contact_pairs "
                                  f"(scene.params(...) builds it, also from a per-pair dict).")
-            raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.")
+            batch = (" An ensemble's params (a leading axis) need jax.vmap over the step or rollout."
+                     if value.shape[1:] == shape else "")
+            raise ValueError(f"Params.{field} has shape {value.shape}; this scene needs {shape}.{batch}")
 
     def check_state_shapes(self, state: State) -> None:
         """Raise ``ValueError`` if a field of ``state`` has the wrong shape for this scene.

@@ -564,6 +564,10 @@ def rollout(
         )
     if isinstance(step, Step):
         state = step.prepare(state)
+        # Before anything reads them: a contact scene's free attempt (far_from_contact) read
+        # them first, and batched params without a vmap failed in the narrow phase ("position
+        # must have shape (3,)"), a float32 state with float64 params on the loop's carry type.
+        step.scene.check_inputs(params, state)
     else:
         _check_carried_form(step, params, state)
     # The vmap, if any, is seen here, outside the jit: inside it the loop is traced for one

@@ -489,6 +489,18 @@ def test_params_and_state_must_fit_the_scene_and_each_other():
                 lambda: rb.ode.solve(scene, wide, narrow, 0.1)):
         with pytest.raises(ValueError, match="state is float32 and the params float64"):
             run()
+    # A contact scene's rollout tries free chunks first, which read params and state before
+    # any step checked them: the carry's type error, and for an ensemble's params without a
+    # vmap, a narrow-phase error about the (correct) position's shape.
+    ground = scene_of(BALL, ground=rb.Plane(), contacts="all")
+    contact_step = rb.make_step(ground, euler, 1e-2)
+    for steps, every in ((4, 1), (5, 1), (4, 2)):
+        with pytest.raises(ValueError, match="state is float32 and the params float64"):
+            rb.rollout(contact_step, ground.params(dtype=jnp.float64), ground.state(ground.params(dtype=jnp.float32)),
+                       steps, save_every=every)
+    members = jax.vmap(lambda m: ground.params(mass={"ball": m}))(jnp.arange(1.0, 5.0))
+    with pytest.raises(ValueError, match=r"Params.mass has shape \(4, 1\).*need jax.vmap"):
+        rb.rollout(contact_step, members, ground.state(), 4)
     # float32 params with a float64 state run in the state's precision, as before
     assert step(scene.params(dtype=jnp.float32), scene.state(wide)).position.dtype == jnp.float64
 
