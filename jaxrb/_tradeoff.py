@@ -496,7 +496,10 @@ def plot_tradeoff(result: TradeoffResult, metric: str = "attitude_error", ax=Non
     if ax is None:
         _, ax = plt.subplots(figsize=(6.4, 4.8))
     for name in dict.fromkeys(r["integrator"] for r in result.rows):
-        rows = [r for r in result._ok(metric) if r["integrator"] == name and r[metric] > 0]
+        # In order of work: the rows follow the order of ``dts`` as given, and an unsorted
+        # ``dts`` drew a zig-zag line (a non-monotone trade that was not measured).
+        rows = sorted((r for r in result._ok(metric) if r["integrator"] == name and r[metric] > 0),
+                      key=lambda r: (r["steps"], r["cost"]))
         if rows:
             ax.plot([r["cost"] for r in rows], [r[metric] for r in rows], marker="o", label=name)
     shown = [r for r in front if r[metric] > 0]

@@ -137,6 +137,14 @@ def test_work_precision_benchmark_quick(tmp_path):
     for name in integrators:
         coarse, fine = (r["attitude_error"] for r in rows if r["method"] == name and r["dtype"] == "float64")
         assert coarse / fine > 0.6 * 2 ** getattr(rb.integrators, name).order, (name, coarse, fine)
+    # --replot redoes the orders, tables and figures from the JSON alone, and the same rows give the
+    # same table; the rows themselves are kept as measured.
+    again = tmp_path / "again"
+    replotted = load("work_precision").main(["--replot", str(tmp_path / "work_precision.json"), "--out", str(again)])
+    assert (again / "work_precision_table.md").read_text() == table
+    assert replotted["problems"]["asymmetric_top"]["rows"] == rows and "replotted" in replotted
+    for stem in ["front", "convergence", "stability", "ucurves_asymmetric_top"]:
+        assert (again / f"work_precision_{stem}.png").stat().st_size > 0
 
 
 def check_header(record):

@@ -4,6 +4,7 @@ Two bodies (a box and a capsule) under gravity, linear damping, a spring to the 
 and a time-dependent torque. Float64 (conftest). The sweep is run once per module.
 """
 
+import dataclasses
 import json
 import math
 import warnings
@@ -205,6 +206,16 @@ def test_table_json_and_plot(sweep, tmp_path):
     assert path.stat().st_size > 10_000
     import matplotlib.pyplot as plt
 
+    plt.close(ax.figure)
+    # Each line joins its runs in order of work, however dts was ordered (the rows follow dts).
+    shuffled = dataclasses.replace(result, rows=[result.rows[k] for k in np.random.default_rng(0).permutation(
+        len(result.rows))])
+    ax = tradeoff.plot_tradeoff(shuffled)
+    names = {r["integrator"] for r in result.rows}
+    for line in [line for line in ax.get_lines() if line.get_label() in names]:
+        steps = {r["cost"]: r["steps"] for r in result.rows if r["integrator"] == line.get_label()}
+        drawn = [steps[c] for c in line.get_xdata()]
+        assert drawn == sorted(drawn) and len(drawn) > 1, line.get_label()
     plt.close(ax.figure)
 
 
