@@ -1293,6 +1293,31 @@ def test_cores_within_round_off_take_the_fallback_normal_under_jit_and_vmap():
     np.testing.assert_allclose(crossing.gap[:, 0], -0.25, atol=1e-12)
 
 
+def test_cores_a_few_millimetres_apart_far_from_the_origin_keep_their_normal_in_float32():
+    """At 1 km from the origin in float32 the coincidence bound of the cores was 64 eps of
+    the coordinates, 7.6 mm: two 5 mm balls 5 mm apart along x were pushed apart along z,
+    crossing capsules 5 mm apart along the common perpendicular were pushed into each other
+    (A below B, normal +z), and a ball under a capsule sideways. Now the normal is the
+    cores' direction there, as at the origin; and where cores do fall within the bound
+    (0.5 mm apart), the fallback is turned to A's side."""
+    f32 = functools.partial(jnp.asarray, dtype=jnp.float32)
+    identity = f32([1.0, 0.0, 0.0, 0.0])
+    along_x = f32([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])  # body z along world x
+    along_y = f32([np.cos(np.pi / 4), -np.sin(np.pi / 4), 0.0, 0.0])  # body z along world y
+    far = 1e3
+    for offset in (0.0, far):
+        at = lambda *p, offset=offset: f32(np.array(p) + offset)  # noqa: E731
+        balls = collision.collide(Sphere(0.005), at(0.005, 0, 0), identity, Sphere(0.005), at(0, 0, 0), identity)
+        np.testing.assert_allclose(balls.normal[0], [1.0, 0.0, 0.0], atol=1e-6)
+        under = collision.collide(Sphere(0.01), at(0, 0, -0.005), identity, Capsule(0.01, 0.5), at(0, 0, 0), along_y)
+        np.testing.assert_allclose(under.normal[0], [0.0, 0.0, -1.0], atol=1e-6)
+        for dz in (0.005, -0.005, 0.0005, -0.0005):  # the last two inside the bound at 1 km
+            crossing = collision.collide(Capsule(0.01, 0.5), at(0, 0, dz), along_x, Capsule(0.01, 0.5), at(0, 0, 0),
+                                         along_y)
+            np.testing.assert_allclose(crossing.normal[0], [0.0, 0.0, np.sign(dz)], atol=1e-6, err_msg=(offset, dz))
+            assert abs(float(crossing.gap[0]) - (abs(dz) - 0.02)) < 2 * 6.2e-5 * (offset > 0) + 1e-7
+
+
 def test_parallel_capsules_whose_segments_overlap_take_the_fallback_normal_under_jit():
     """Two capsules of one orientation whose segments overlap (coincident centres, or
     collinear and shifted along the axis). Under jit the equal axes came out apart by

@@ -34,16 +34,30 @@ def rounded_points_contact(
     When the cores coincide every direction is a valid normal; ``fallback_normal`` (unit)
     is used. ``safe_norm`` keeps the gradient finite there (0 for the distance, whose
     derivative ``d/|d|`` is 0/0), and ``safe_normalize`` keeps the unused branch finite.
-    Cores within round-off of each other (64 eps of the coordinates and radii) count as
-    coincident: their difference is noise, and compiled under ``jit`` and ``vmap`` its
-    normalisation had come out of unit length (0.05 to 11 for a sphere centred on a
-    capsule's segment). Broadcasts over leading slot axes.
+    Cores within round-off of each other (8 eps of the coordinates and radii) count as
+    coincident: their difference is noise. The fallback is turned to A's side of B where
+    ``d`` points against it by more than its rounding (2 eps; a common perpendicular of two
+    segments has no sign of its own).
+
+    The bound was 64 eps: in float32 at 1 km from the origin that is 7.6 mm, and cores a few
+    mm apart, whose difference is good to 1%, took the fallback (two 5 mm balls side by side
+    were pushed apart along z; crossing capsules 5 mm apart, into each other). Just past the
+    bound ``d`` is a few ulps, which XLA may round differently where it evaluates it twice
+    (under ``jit`` and ``vmap`` the norm and the quotient had given normals of length 0.05 to
+    11 at 64 eps' noise): the direction is normalised a second time, from one array.
+    Broadcasts over leading slot axes.
     """
     d = core_a - core_b
     distance = spatial.safe_norm(d)
     scale = jnp.maximum(jnp.max(jnp.abs(core_a), axis=-1), jnp.max(jnp.abs(core_b), axis=-1)) + radius_a + radius_b
-    coincident = distance <= 64 * jnp.finfo(d.dtype).eps * scale
-    normal = jnp.where(coincident[..., None], fallback_normal, spatial.safe_normalize(d))
+    rounding = jnp.finfo(d.dtype).eps * scale
+    coincident = distance <= 8 * rounding
+    direction = spatial.safe_normalize(spatial.safe_normalize(d))
+    # Turned only where d has a sign beyond its rounding: cores that coincide keep the
+    # documented fallback, not one flipped by noise.
+    behind = spatial.dot(fallback_normal, d) < -2 * rounding
+    fallback = fallback_normal * jnp.where(behind, -1.0, 1.0).astype(d.dtype)[..., None]
+    normal = jnp.where(coincident[..., None], fallback, direction)
     gap = distance - radius_a - radius_b
     return core_a - radius_a * normal, normal, gap
 
