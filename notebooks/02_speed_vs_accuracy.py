@@ -182,10 +182,11 @@ plt.show()
 # Every method shows its nominal order. The three first-order methods differ by their
 # constants: at the same $h$ semi-implicit Euler and `ImplicitGyroscopic` are seven to ten
 # times less accurate than seed 000's explicit Euler with Gram–Schmidt, *on this top*.
-# The two second-order methods have the same slope, but the splitting's error constant
-# is ten times smaller than the implicit midpoint's. RK4 and RKMK4 reach a few
+# The second-order methods have the same slope, but the splittings' error constants
+# are ten (`SymplecticSplitting`) and forty (`SymmetricTopSplitting`) times smaller than
+# the implicit midpoint's. RK4 and RKMK4 reach a few
 # $10^{-12}$ rad at the finest step, where the second-order methods are at $10^{-5}$ to
-# $10^{-6}$ rad and the first-order ones at $10^{-2}$ to $10^{-3}$ rad. For smooth motion
+# $10^{-7}$ rad and the first-order ones at $10^{-2}$ to $10^{-3}$ rad. For smooth motion
 # the fourth-order methods win by orders of magnitude at equal step size, for four force
 # evaluations per step against one or two (the integrators' docstrings give the costs).
 
@@ -336,11 +337,13 @@ for name, rows in extreme.items():
 #   first-order methods are off by tenths of a radian (explicit Euler) to radians.
 # * At 0.5 the fourth-order methods are off by 0.02 rad after three turns, with energy
 #   errors of 0.2 %; the splitting by 0.05 rad, with 0.02 %.
-# * `SymmetricTopSplitting`'s attitude error is about three times smaller than
-#   `SymplecticSplitting`'s at every spin here, and its energy error up to ten times larger
-#   (below 7 % at 2): on this strongly asymmetric top the two trade one for the other.
-# * At 1 and above no method follows the true attitude any more (errors of 0.2 rad to
-#   radians after three turns). What is left to choose between is *how* they fail:
+# * `SymmetricTopSplitting`'s attitude error is two to three times smaller than
+#   `SymplecticSplitting`'s at every spin here, and its energy error up to twenty times
+#   larger (22 times at 0.5; below 7 % at 2): on this strongly asymmetric top the two trade
+#   one for the other.
+# * At 1 and above no method follows the true attitude any more (errors of 0.07 rad for
+#   `SymmetricTopSplitting` at 1, 0.2 rad to radians for the others, after three turns).
+#   What is left to choose between is *how* they fail:
 #   `ImplicitMidpoint` still conserves the energy to round-off, the splitting keeps it
 #   within 0.2 % at 1 and 4 % at 2, and the fourth-order explicit methods reach 5 % at 1
 #   and 24 % at 2. None of them blows up: for every method but `ImplicitGyroscopic`
@@ -685,7 +688,8 @@ else:
 # * **Robust but damped: `ImplicitGyroscopic`.** First order. It removed 30 % of the
 #   energy of a free tumble in 200 s and changed $\mathbf{L}$ by 12 %. As built by default
 #   (a continuation in the step size that keeps the last converged root), no step gains
-#   energy beyond round-off at any $|\boldsymbol{\omega}| h$ tried, up to 4 (section 4).
+#   energy beyond round-off at any $|\boldsymbol{\omega}| h$ tried, up to 2 in section 4
+#   (and up to 4 in `tests/test_integrators.py`).
 #   Do not replace it by a single Newton step (`stages=1, iterations=1, safeguard=False`, what MuJoCo and Bullet
 #   do): at $|\boldsymbol{\omega}| h$ = 2 that multiplied a flat body's energy by about 380
 #   in one step with the moments (2.49, 2.26, 0.47) used here (230 with the unrounded

@@ -386,7 +386,11 @@ def test_notebook_03_contacts_executes(tmp_path):
     # Heavy ball on a light one: the exact solve holds it (measured 9e-12 m); PGS is reported.
     exact = float(re.search(r"^exact: the heavy ball sinks up to (\S+) m", text, flags=re.M).group(1))
     assert exact < 1e-6
-    assert re.search(r"^pgs  : the heavy ball sinks up to \S+ m", text, flags=re.M)
+    # The markdown beside it quotes PGS's sag (measured 6.1 mm, 2.2 mm low at the end): it had
+    # quoted 7 and 4.5 mm long after the solver changed. Kept to the text's figures here.
+    sag, end = (float(x) for x in re.search(r"^pgs  : the heavy ball sinks up to (\S+) m \((\S+) m at the end\)",
+                                            text, flags=re.M).groups())
+    assert 5.5e-3 < sag < 6.5e-3 and 1.9e-3 < end < 2.5e-3, (sag, end)
 
 
 def test_identification_example_runs_from_its_command_line(capsys):
