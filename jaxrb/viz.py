@@ -3,7 +3,9 @@
 Each body is drawn as its shape's surface (polygons), where the collision code sees it:
 a point ``p`` of the shape's frame is at ``x + A (offset + p)`` in the world, with ``x``
 the centre of mass, ``A`` the body-to-world rotation (:func:`jaxrb.state.rotation_matrix`:
-the quaternion's, or the matrix that :class:`jaxrb.integrators.ExplicitEuler` carries) and
+the quaternion's, or the matrix that :class:`jaxrb.integrators.ExplicitEuler` carries: the
+collisions read the quaternion, which agrees with that matrix unless Gram-Schmidt is off,
+``ExplicitEuler(reorthonormalize=False)``, where the drawing shows the matrix's drift) and
 ``offset`` the shape's origin in the body frame (``Body.shape_offset``, non-zero for a mesh
 whose centre of mass is off its origin). Static planes are drawn as translucent squares
 under the bodies. Everything here runs in NumPy on concrete arrays, outside ``jit``.
@@ -167,12 +169,53 @@ def _plane_square(plane, middle, half_width):
     return np.stack([centre + half_width * (su * u + sv * v) for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
 
 
-def _extent(world_polygons, centres):
-    """The bounding box (lower, upper) of the drawn bodies over every frame, and of the
-    centres of mass (bodies without a shape)."""
+def _extent(world_polygons, centres, planes):
+    """The bounding box (lower, upper) of the drawn bodies over every frame, of the centres
+    of mass (bodies without a shape), and of each plane's point nearest to them (a ground
+    under a ball dropped from 2 m had been left out of the view)."""
     points = [centres.reshape(-1, 3)] + [p for frame in world_polygons for polygons in frame.values() for p in polygons]
     points = np.concatenate(points)
+    middle = 0.5 * (points.min(0) + points.max(0))
+    nearest = [middle - (np.asarray(plane.normal) @ middle - plane.offset) * np.asarray(plane.normal)
+               for plane in planes]
+    points = np.concatenate([points, *(x[None] for x in nearest)])
     return points.min(0), points.max(0)
+
+
+def _backdrop(polygons, **style):
+    """A ``Poly3DCollection`` always drawn behind the others: matplotlib orders collections
+    by their nearest vertex, and a translucent ground square reaching past the bodies on it
+    was drawn over them (they looked sunk into it). Seen from under a plane's solid side the
+    bodies are still drawn over it."""
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    class Backdrop(Poly3DCollection):
+        def do_3d_projection(self):
+            super().do_3d_projection()
+            return np.inf
+
+    return Backdrop(polygons, **style)
+
+
+def _colour_list(colours, names):
+    """One colour per body with a shape, from ``None``, one colour, a list, or ``{name: colour}``."""
+    default = [_COLOURS[k % len(_COLOURS)] for k in range(len(names))]
+    if colours is None:
+        return default
+    from matplotlib.colors import is_color_like
+
+    if not isinstance(colours, dict | list) and is_color_like(colours):
+        return [colours] * len(names)  # one colour for all: "red", "C3", (0.1, 0.2, 0.3)
+    if isinstance(colours, dict):
+        unknown = sorted(set(colours) - set(names))
+        if unknown:
+            raise ValueError(f"colours: no body with a shape is named {unknown}; the bodies drawn are {names}.")
+        return [colours.get(name, d) for name, d in zip(names, default, strict=True)]
+    colours = list(colours)
+    if len(colours) != len(names):
+        raise ValueError(f"colours: one per body with a shape ({len(names)}: {names}), a dict {{name: colour}}, or "
+                         f"one colour for all; got {len(colours)}.")
+    return colours
 
 
 def _axes(ax):
@@ -188,11 +231,13 @@ def _axes(ax):
 
 class Drawing:
     """What :func:`draw` put on an Axes: ``ax``, the bodies' ``Poly3DCollection`` by body
-    name (``collections``), the world polygons last set (``surfaces``, m), and
-    :meth:`update` to move the bodies to another state of the same scene."""
+    name (``collections``), the world polygons last set (``surfaces``, m), the planes'
+    squares by name (``planes``, ``(4, 3)`` m), and :meth:`update` to move the bodies to
+    another state of the same scene."""
 
-    def __init__(self, scene, ax, bodies: _Bodies, collections, title: bool):
+    def __init__(self, scene, ax, bodies: _Bodies, collections, title: bool, points=None, decimals: int = 3):
         self.scene, self.ax, self._bodies, self.collections, self._title = scene, ax, bodies, collections, title
+        self._points, self._decimals = points, decimals
         self.surfaces: dict[str, list[np.ndarray]] = {}
 
     def update(self, state: State) -> list:
@@ -206,9 +251,14 @@ class Drawing:
         self.surfaces = self._bodies.world(centre, rotation)
         for name, polygons in self.surfaces.items():
             self.collections[name].set_verts(polygons)
+        changed = list(self.collections.values())
+        if self._points is not None:
+            shapeless = [i for i, b in enumerate(self.scene.bodies) if b.shape is None]
+            self._points.set_data_3d(*centre[shapeless].T)
+            changed.append(self._points)
         if self._title:
-            self.ax.set_title(f"t = {time:.3f} s")
-        return list(self.collections.values())
+            self.ax.set_title(f"t = {time:.{self._decimals}f} s")
+        return changed
 
 
 def draw(scene, state: State, ax=None, *, resolution: int = 16, planes: bool = True, alpha: float = 0.9,
@@ -222,12 +272,16 @@ def draw(scene, state: State, ax=None, *, resolution: int = 16, planes: bool = T
         resolution: points around curved surfaces (:func:`shape_surface`).
         planes: draw the ground and walls as translucent squares around the bodies.
         alpha: the bodies' opacity.
-        colours: one matplotlib colour per body with a shape, or ``None`` for the default cycle.
+        colours: ``None`` (matplotlib's cycle), one colour for all, one per body with a
+            shape, or ``{name: colour}`` (the others from the cycle).
         title: show the state's time (s) as the title.
 
     Returns:
         A :class:`Drawing` (its ``ax``, the bodies' collections, and ``update(state)``).
-        The axes have equal scales in x, y and z (m), so that shapes are not distorted.
+        The axes have equal scales in x, y and z (m), so that shapes are not distorted, and
+        hold the bodies and each plane's point nearest to them. Bodies without a shape are
+        drawn as black dots at their centres of mass. Set the view afterwards with
+        ``drawing.ax.set_xlim(...)`` or ``drawing.ax.view_init(elev, azim)``.
     """
     centres, rotations, times = _frames(scene, state, "rb.viz.draw")
     if np.ndim(state.position) != 2:
@@ -238,24 +292,25 @@ def draw(scene, state: State, ax=None, *, resolution: int = 16, planes: bool = T
                  planes=planes, alpha=alpha, colours=colours, title=title)
 
 
-def _draw(scene, bodies, centres, rotations, times, shown_polygons, ax, *, planes, alpha, colours, title) -> Drawing:
+def _draw(scene, bodies, centres, rotations, times, shown_polygons, ax, *, planes, alpha, colours, title,
+          decimals=3) -> Drawing:
     """:func:`draw` at the first of ``centres``/``rotations`` (``(T, N, ...)``), with the
-    axes' limits around ``shown_polygons`` (every frame's world polygons) and ``centres``."""
+    axes' limits around ``shown_polygons`` (every frame's world polygons), ``centres`` and
+    the planes."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     ax = _axes(ax)
-    if colours is None:
-        colours = [_COLOURS[k % len(_COLOURS)] for k in range(len(bodies.names))]
-    elif len(colours) != len(bodies.names):
-        raise ValueError(f"colours: one per body with a shape ({len(bodies.names)}: {bodies.names}), "
-                         f"got {len(colours)}.")
-    lower, upper = _extent(shown_polygons, centres)
+    colours = _colour_list(colours, bodies.names)
+    shown_planes = list(scene.planes.values()) if planes else []  # (in the order of scene.planes)
+    lower, upper = _extent(shown_polygons, centres, shown_planes)
     middle, half = 0.5 * (lower + upper), 0.5 * float(np.max(upper - lower))
-    half = max(half, 1e-3) * 1.15
-    if planes:
-        for plane in scene.planes.values():
-            square = _plane_square(plane, middle, half)
-            ax.add_collection3d(Poly3DCollection([square], facecolor="0.6", edgecolor="0.4", alpha=0.25))
+    half = max(half, 0.05) * 1.15
+    squares = {name: _plane_square(plane, middle, half) for name, plane in scene.planes.items() if planes}
+    for square in squares.values():
+        ax.add_collection3d(_backdrop([square], facecolor="0.6", edgecolor="0.4", alpha=0.25))
+    points = None
+    if any(b.shape is None for b in scene.bodies):
+        (points,) = ax.plot([], [], [], "k.", markersize=8)
     collections = {}
     for name, colour in zip(bodies.names, colours, strict=True):
         collection = Poly3DCollection([], facecolor=colour, edgecolor="k", linewidth=0.2, alpha=alpha)
@@ -267,7 +322,8 @@ def _draw(scene, bodies, centres, rotations, times, shown_polygons, ax, *, plane
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    drawing = Drawing(scene, ax, bodies, collections, title)
+    drawing = Drawing(scene, ax, bodies, collections, title, points, decimals)
+    drawing.planes = squares
     drawing._show(centres[0], rotations[0], times[0])
     return drawing
 
@@ -281,30 +337,45 @@ def animate(scene, trajectory: State, ax=None, *, every: int = 1, interval_ms: f
         trajectory: the stacked states ``rb.rollout`` returns (``position (T, N, 3)``).
         ax: a 3D Axes, or ``None`` for a new figure.
         every: show every ``every``-th state (a positive int).
-        interval_ms: time between frames (ms); ``None``: the trajectory's own time
-            between shown states (real time), at least 20 ms.
-        resolution, planes, alpha, colours, title: as in :func:`draw`.
+        interval_ms: time between frames (ms, positive); ``None``: the trajectory's own
+            time between shown states (real time), at least 20 ms.
+        resolution, planes, alpha, colours, title: as in :func:`draw`; the title shows
+            enough decimals to tell the frames' times apart.
 
     Returns:
-        The animation, with its :class:`Drawing` as ``animation.drawing``. The axes'
-        limits cover every frame. In a notebook ``HTML(animation.to_jshtml())`` shows it;
-        ``animation.save("out.gif")`` writes it (with a matplotlib writer installed).
+        The animation, with its :class:`Drawing` as ``animation.drawing`` and
+        ``animation.show_frame(k)`` to draw the k-th shown state (e.g. for a slider:
+        ``ipywidgets.interact(animation.show_frame, k=(0, n - 1))``). The axes' limits cover
+        every frame. In a notebook ``HTML(animation.to_jshtml())`` shows it
+        (about 0.1 MB and 0.1 s a frame at the default size: matplotlib stops embedding at
+        ``matplotlib.rcParams["animation.embed_limit"]``, 20 MB, so pick ``every`` for
+        about 100-150 frames); ``animation.save("out.gif")`` writes it (with a matplotlib
+        writer installed).
     """
     from matplotlib.animation import FuncAnimation
 
     if not isinstance(every, int | np.integer) or isinstance(every, bool) or every < 1:
         raise ValueError(f"every must be a positive int (show every k-th state), got {every!r}.")
+    if interval_ms is not None and not (isinstance(interval_ms, int | float | np.integer | np.floating)
+                                        and math.isfinite(interval_ms) and interval_ms > 0):
+        raise ValueError(f"interval_ms must be a positive number of milliseconds (or None for real time), "
+                         f"got {interval_ms!r}.")
     centres, rotations, times = _frames(scene, trajectory, "rb.viz.animate")
     if np.ndim(trajectory.position) != 3:
         raise ValueError("rb.viz.animate needs a trajectory (position (T, N, 3)), got one state: use rb.viz.draw.")
+    if centres.shape[0] == 0:
+        raise ValueError("rb.viz.animate: the trajectory has no states (position of shape "
+                         f"{np.shape(trajectory.position)}).")
     shown = np.arange(0, centres.shape[0], every)
     centres, rotations, times = centres[shown], rotations[shown], times[shown]
     bodies = _Bodies(scene, resolution)
     everywhere = [bodies.world(c, r) for c, r in zip(centres, rotations, strict=True)]
+    gap = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    # Decimals enough to tell the frames apart (3 had printed 0.2 ms steps as t = 0.001 s twice).
+    decimals = max(3, math.ceil(-math.log10(gap)) + 1) if math.isfinite(gap) and gap > 0 else 3
     drawing = _draw(scene, bodies, centres, rotations, times, everywhere, ax, planes=planes, alpha=alpha,
-                    colours=colours, title=title)
+                    colours=colours, title=title, decimals=min(decimals, 9))
     if interval_ms is None:
-        gap = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
         interval_ms = max(20.0, 1e3 * gap) if math.isfinite(gap) else 20.0
 
     def frame(k):
@@ -312,4 +383,5 @@ def animate(scene, trajectory: State, ax=None, *, every: int = 1, interval_ms: f
 
     animation = FuncAnimation(drawing.ax.figure, frame, frames=len(times), interval=interval_ms, blit=False)
     animation.drawing = drawing
+    animation.show_frame = frame
     return animation

@@ -4,6 +4,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
@@ -153,6 +154,55 @@ def test_an_animation_shows_every_kth_state_inside_its_limits():
     plt.close("all")
 
 
+def test_the_ground_is_in_view_and_behind_the_bodies_on_it():
+    # A ball 2 m up: the limits had held the ball alone, and the ground's square was off the
+    # axes. A box resting on the ground: the translucent square reaching past it was drawn
+    # over it (matplotlib orders collections by their nearest vertex).
+    scene = rb.Scene([rb.Body("ball", shape=rb.Sphere(0.1), mass=1.0), rb.Body("box", shape=rb.Box((0.1,) * 3),
+                                                                                  mass=1.0),
+                      rb.Body("point", mass=1.0, inertia=(1.0, 1.0, 1.0))],
+                     ground=rb.Plane(), walls={"wall": rb.Plane((-1.0, 0.0, 0.0), -1.5)})
+    params = scene.params(dtype=jnp.float64)
+    state = scene.state(params, position={"ball": (0.0, 0.0, 2.0), "box": (0.5, 0.0, 0.1), "point": (0.2, 0.3, 0.4)})
+    drawing = rb.viz.draw(scene, state)
+    limits = np.array([drawing.ax.get_xlim(), drawing.ax.get_ylim(), drawing.ax.get_zlim()])
+    for name, square in drawing.planes.items():
+        plane = scene.planes[name]
+        np.testing.assert_allclose(square @ np.asarray(plane.normal), plane.offset, atol=1e-12)
+        inside = (limits[:, 0] - 1e-9 <= square) & (square <= limits[:, 1] + 1e-9)
+        assert inside.all(axis=1).sum() >= 2, name  # the square reaches into the view from a side at least
+    assert limits[2, 0] <= 0.0 and limits[0, 1] >= 1.5  # the ground's and the wall's nearest points
+    drawing.ax.figure.canvas.draw()
+    planes = [c for c in drawing.ax.collections if c not in drawing.collections.values()]
+    assert len(planes) == 2
+    assert max(c.get_zorder() for c in planes) < min(c.get_zorder() for c in drawing.collections.values())
+    # The shapeless body is a dot at its centre of mass.
+    (dot,) = drawing.ax.get_lines()
+    np.testing.assert_allclose(np.ravel(dot.get_data_3d()), [0.2, 0.3, 0.4])
+    plt.close("all")
+
+
+@pytest.mark.filterwarnings("ignore:Animation was deleted without rendering")  # frames drawn one by one here
+def test_colours_titles_and_frames_on_request():
+    scene, state, traj = _tumbling_box(12)
+    drawing = rb.viz.draw(scene, state, colours={"ball": "red"})
+    assert matplotlib.colors.to_hex(drawing.collections["ball"].get_facecolor()[0], keep_alpha=False) == "#ff0000"
+    drawing = rb.viz.draw(scene, state, colours="black")
+    assert all(matplotlib.colors.to_hex(c.get_facecolor()[0], keep_alpha=False) == "#000000"
+               for c in drawing.collections.values())
+    # Frames 0.2 ms apart: every title differs (three decimals had shown 0.000 s twice).
+    fine = traj.replace(time=traj.time * 0.02)
+    animation = rb.viz.animate(scene, fine)
+    titles = []
+    for k in range(12):
+        animation.show_frame(k)
+        titles.append(animation.drawing.ax.get_title())
+        np.testing.assert_allclose(np.stack(animation.drawing.surfaces["ball"]).mean((0, 1)),
+                                   np.asarray(traj.position[k, 1]), atol=1e-12)  # frame k shows state k
+    assert len(set(titles)) == 12, titles
+    plt.close("all")
+
+
 def test_every_shape_renders():
     shapes = [s for s, *_ in SURFACES.values()]
     bodies = [rb.Body(f"b{k}", shape=s, mass=1.0, inertia=(1.0, 1.0, 1.0)) for k, s in enumerate(shapes)]
@@ -189,6 +239,13 @@ def test_bad_input_is_refused_with_what_to_do():
         rb.viz.draw(scene, state, ax=plt.figure().add_subplot())
     with pytest.raises(ValueError, match="one per body with a shape"):
         rb.viz.draw(scene, state, colours=["C0"])
+    with pytest.raises(ValueError, match=r"no body with a shape is named \['bal'\]"):
+        rb.viz.draw(scene, state, colours={"bal": "red"})
+    for interval in (0, -5.0, float("nan"), "fast"):
+        with pytest.raises(ValueError, match="interval_ms must be a positive number"):
+            rb.viz.animate(scene, traj, interval_ms=interval)
+    with pytest.raises(ValueError, match="the trajectory has no states"):
+        rb.viz.animate(scene, jax.tree.map(lambda x: x[:0], traj))
     with pytest.raises(ValueError, match=r"non-finite .*\['ball'\]"):
         rb.viz.draw(scene, state.replace(position=state.position.at[1, 0].set(jnp.nan)))
     with pytest.raises(ValueError, match="has no surface to draw by itself"):
