@@ -159,10 +159,16 @@ class _Bodies:
                 for name, i, polygons in zip(self.names, self.index, self.polygons, strict=True)}
 
 
+def _on_plane(plane, x):
+    """The point of ``plane`` nearest to ``x`` (m)."""
+    n = np.asarray(plane.normal, float)
+    return x - (n @ x - plane.offset) * n
+
+
 def _plane_square(plane, middle, half_width):
     """A square of the plane, centred at ``middle``'s projection on it."""
     n = np.asarray(plane.normal, float)
-    centre = middle - (n @ middle - plane.offset) * n
+    centre = _on_plane(plane, middle)
     u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
     u /= np.linalg.norm(u)
     v = np.cross(n, u)
@@ -176,9 +182,7 @@ def _extent(world_polygons, centres, planes):
     points = [centres.reshape(-1, 3)] + [p for frame in world_polygons for polygons in frame.values() for p in polygons]
     points = np.concatenate(points)
     middle = 0.5 * (points.min(0) + points.max(0))
-    nearest = [middle - (np.asarray(plane.normal) @ middle - plane.offset) * np.asarray(plane.normal)
-               for plane in planes]
-    points = np.concatenate([points, *(x[None] for x in nearest)])
+    points = np.concatenate([points, *(_on_plane(plane, middle)[None] for plane in planes)])
     return points.min(0), points.max(0)
 
 
@@ -235,9 +239,9 @@ class Drawing:
     squares by name (``planes``, ``(4, 3)`` m), and :meth:`update` to move the bodies to
     another state of the same scene."""
 
-    def __init__(self, scene, ax, bodies: _Bodies, collections, title: bool, points=None, decimals: int = 3):
+    def __init__(self, scene, ax, bodies: _Bodies, collections, planes, title: bool, points=None, decimals: int = 3):
         self.scene, self.ax, self._bodies, self.collections, self._title = scene, ax, bodies, collections, title
-        self._points, self._decimals = points, decimals
+        self.planes, self._points, self._decimals = planes, points, decimals
         self.surfaces: dict[str, list[np.ndarray]] = {}
 
     def update(self, state: State) -> list:
@@ -304,7 +308,9 @@ def _draw(scene, bodies, centres, rotations, times, shown_polygons, ax, *, plane
     shown_planes = list(scene.planes.values()) if planes else []  # (in the order of scene.planes)
     lower, upper = _extent(shown_polygons, centres, shown_planes)
     middle, half = 0.5 * (lower + upper), 0.5 * float(np.max(upper - lower))
-    half = max(half, 0.05) * 1.15
+    # A floor for a view of one point: 1 mm beside shapes (a 1 mm body stays visible), 0.5 m
+    # for point masses alone.
+    half = max(half, 1e-3 if bodies.names else 0.5) * 1.15
     squares = {name: _plane_square(plane, middle, half) for name, plane in scene.planes.items() if planes}
     for square in squares.values():
         ax.add_collection3d(_backdrop([square], facecolor="0.6", edgecolor="0.4", alpha=0.25))
@@ -322,8 +328,7 @@ def _draw(scene, bodies, centres, rotations, times, shown_polygons, ax, *, plane
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    drawing = Drawing(scene, ax, bodies, collections, title, points, decimals)
-    drawing.planes = squares
+    drawing = Drawing(scene, ax, bodies, collections, squares, title, points, decimals)
     drawing._show(centres[0], rotations[0], times[0])
     return drawing
 

@@ -1,5 +1,7 @@
 """rb.viz: every drawn vertex on its shape's surface, at the body's pose; animations of a rollout."""
 
+import gc
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -201,6 +203,8 @@ def test_colours_titles_and_frames_on_request():
                                    np.asarray(traj.position[k, 1]), atol=1e-12)  # frame k shows state k
     assert len(set(titles)) == 12, titles
     plt.close("all")
+    del animation
+    gc.collect()  # its "deleted without rendering" warning here, inside this test's filter
 
 
 def test_every_shape_renders():
