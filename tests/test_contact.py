@@ -2113,6 +2113,71 @@ def test_the_solve_has_the_same_derivative_from_any_warm_start():
         np.testing.assert_allclose(d_lam, fd, rtol=1e-6)
 
 
+def test_friction_projection_has_a_bounded_derivative():
+    """The disk projection of the sweeps' friction step, by its own derivative rule:
+    against central differences where it is smooth (inside the disk, and outside it, where
+    the radius also moves), and finite in float32 where a slot touches without pushing
+    (radius 0) and its wanted friction is tiny (``|w| = 1e-20``: JAX's derivative of the
+    reciprocal square root overflowed there, times the zero radius, NaN)."""
+    from jaxrb.contact._solver import _onto_disk
+
+    rng = np.random.default_rng(7)
+    wanted = rng.normal(size=(6, 2))
+    radius = np.abs(np.linalg.norm(wanted, axis=1) * np.asarray([0.5, 0.9, 1.5, 3.0, 0.0, 0.2]))
+    d_wanted, d_radius = rng.normal(size=(6, 2)), rng.normal(size=6) * (radius > 0)
+    value, derivative = jax.jvp(_onto_disk, (jnp.asarray(wanted), jnp.asarray(radius)),
+                                (jnp.asarray(d_wanted), jnp.asarray(d_radius)))
+    h = 1e-6
+    fd = (_onto_disk(wanted + h * d_wanted, radius + h * d_radius)
+          - _onto_disk(wanted - h * d_wanted, radius - h * d_radius)) / (2 * h)
+    np.testing.assert_allclose(derivative, fd, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(value, axis=1), np.minimum(np.linalg.norm(wanted, axis=1), radius),
+                               rtol=1e-12)
+    tiny = jnp.asarray([[1e-20, -1e-20], [1e-30, 0.0], [0.0, 0.0], [3e-14, 1e-14]], jnp.float32)
+    jacobian = jax.jacfwd(_onto_disk, argnums=(0, 1))(tiny, jnp.zeros(4, jnp.float32))
+    pulled = jax.vjp(_onto_disk, tiny, jnp.zeros(4, jnp.float32))[1](jnp.zeros_like(tiny))
+    for leaf in (*jacobian, *pulled):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    # (Where |w|^2 is below float32's smallest normal number it may be flushed to 0, and
+    # w is kept: an impulse under 1e-19 N s.)
+    assert np.all(np.abs(np.asarray(_onto_disk(tiny, jnp.zeros(4, jnp.float32)))) <= np.abs(np.asarray(tiny)))
+
+
+def test_a_slot_touching_without_pushing_has_a_finite_solve_derivative():
+    """float32: a box's corner on the ground moving apart (no normal impulse, so no
+    friction: the friction disk's radius is 0) while it slips by 1e-15 m/s. The solve's
+    Jacobian and its reverse-mode pullback (even of a zero cotangent) must be finite, and
+    here they are 0: every impulse stays 0 nearby (central differences agree). Before the
+    disk projection had its own derivative rule, all were NaN: the cause of the NaN
+    gradient of four float32 cubes touching in a 2x2 grid (benchmarks/repro)."""
+    from jaxrb.contact._solver import Bodies, frames, solve
+
+    f32 = jnp.float32
+    inv_inertia = jnp.eye(3, dtype=f32)[None] * jnp.asarray([1 / 0.00667, 0.0], f32)[:, None, None]
+
+    def bodies(v):
+        return Bodies(jnp.asarray([1.0, 0.0], f32), inv_inertia, jnp.stack([v, jnp.zeros(3, f32)]),
+                      jnp.zeros((2, 3), f32))
+
+    v = jnp.asarray([1e-15, 0.0, 0.01], f32)
+    f = frames(bodies(v), [0], [1], jnp.asarray([[0.1, -0.1, 0.0]], f32), jnp.asarray([[0.0, 0.0, 1.0]], f32),
+               jnp.asarray([[0.0, 0.0, 0.1], [0.0, 0.0, 0.0]], f32))
+
+    @jax.jit
+    def impulses(v):
+        return solve(bodies(v), f, jnp.asarray([[0]]), jnp.zeros(1, f32), jnp.asarray([0.5], f32),
+                     jnp.asarray([True]), jnp.zeros((1, 3), f32), 20, tolerance=1e-6)[1]
+
+    assert np.all(np.asarray(impulses(v)) == 0.0)
+    jacobian = jax.jit(jax.jacfwd(impulses))(v)
+    _, pullback = jax.vjp(impulses, v)
+    for leaf in (jacobian, *pullback(jnp.zeros((1, 3), f32)), *pullback(jnp.ones((1, 3), f32))):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    h = 1e-4
+    fd = np.stack([(impulses(v + h * e) - impulses(v - h * e)) / (2 * h) for e in jnp.eye(3, dtype=f32)], -1)
+    np.testing.assert_array_equal(jacobian, fd)
+
+
 @pytest.mark.slow
 def test_five_box_stack_stays_still_for_ten_seconds():
     """Top-box drift <= 1 mm over 10 s at h = 1 ms (exact normal solve; measured 1e-7 m in 2 s)."""

@@ -1,17 +1,25 @@
-"""Reproduction of an open bug: a NaN gradient through four cubes touching in a 2x2 grid.
+"""A fixed bug, kept as a check: a NaN gradient through four cubes touching in a 2x2 grid.
 
 Four 0.1 m cubes of 1 kg on the ground, faces flush, meeting at one vertical edge (so the
 diagonal pairs touch along that edge only), friction 0.5, float32, ``SymplecticSplitting``,
 PGS, dt = 1 ms. The forward rollout is finite and the cubes rest. The gradient of the sum
-of the final heights with respect to params and the initial state is finite after 1 step
-and all NaN after 100 (found by stop 93's review; compiled in 523 s on a loaded 2-core
-machine). The same grid 1e-4 m apart gives finite gradients (0, 0, 1 per body), as do the
-diagonal pair alone and three cubes in a row. Removing the box-box manifold's duplicate
-slots (the diagonal pairs' edge contact gives the same point twice) does not remove the
-NaN, so that is not its cause. Not yet found: bisect the step count, then the step's
-pieces (``jax.config.update("jax_debug_nans", True)`` on the gradient).
+of the final heights with respect to params and the initial state was finite after 1 step
+and all NaN after 100 (found by stop 93's review).
 
-    python benchmarks/repro/grid_gradient_nan.py [steps]   # default 100; prints finiteness
+Cause (stop 94): the PGS friction step projects the wanted tangential impulse ``w`` onto
+the disk ``|w| <= mu lambda_n`` by ``r / sqrt(|w|^2)``. At a slot that touches without
+pushing (``lambda_n = 0``, so ``r = 0``) with a tiny ``w`` (1e-14 N s), JAX's derivative of
+the reciprocal square root, ``-q^(-3/2)/2``, overflowed in float32 and was multiplied by
+``r = 0``: NaN in the sweep's Jacobian, and (through a NaN that the frozen derivative's
+contraction test let through) in the whole gradient. Found by running the rollout step by
+step with each step's VJP, then ``jax.experimental.checkify`` on the first bad step. Fixed
+by a derivative rule for the projection whose factors are all bounded
+(``jaxrb.contact._solver._onto_disk``), and a frozen Jacobian must now be finite.
+Tests: ``tests/test_contact.py::test_a_slot_touching_without_pushing_has_a_finite_solve_derivative``
+and ``::test_friction_projection_has_a_bounded_derivative``. This scene's gradient compiles
+in about 2 minutes on an idle 2-core machine, too slow for the suite.
+
+    python benchmarks/repro/grid_gradient_nan.py [steps]   # default 100; exit status 1 on a NaN
 """
 
 import sys
@@ -49,4 +57,4 @@ def main(steps: int = 100) -> bool:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 100)
+    sys.exit(0 if main(int(sys.argv[1]) if len(sys.argv) > 1 else 100) else 1)

@@ -260,12 +260,42 @@ def _friction_step(c: _Colour, u_t, old_t, radius, on):
     ``u_t`` ``(W, 2)`` is the tangential slip. Returns the change of the tangential impulse
     ``(W, 2)``."""
     wanted = old_t - u_t * c.inv_k_max[:, None]
-    # Projected onto the disk by one reciprocal square root (its derivative finite at 0):
-    # with a norm and a quotient, each was a kernel of its own in every colour's step.
+    return jnp.where(on[:, None], _onto_disk(wanted, radius), 0.0) - old_t
+
+
+def _disk_scale(wanted, radius):
+    """``(scale, outside, 1/|wanted|)`` of :func:`_onto_disk` (``1/|wanted|`` where outside)."""
+    # One reciprocal square root: with a norm and a quotient, each was a kernel of its own
+    # in every colour's step.
     squared = wanted[:, 0] * wanted[:, 0] + wanted[:, 1] * wanted[:, 1]
     outside = squared > radius * radius
-    scale = jnp.where(outside, radius * jax.lax.rsqrt(jnp.where(outside, squared, 1.0)), 1.0)
-    return jnp.where(on[:, None], wanted * scale[:, None], 0.0) - old_t
+    inverse = jax.lax.rsqrt(jnp.where(outside, squared, 1.0))
+    return jnp.where(outside, radius * inverse, 1.0), outside, inverse
+
+
+@jax.custom_jvp
+def _onto_disk(wanted, radius):
+    """``wanted`` ``(W, 2)`` projected onto the disks ``|x| <= radius`` ``(W,)``, ``radius >= 0``."""
+    return wanted * _disk_scale(wanted, radius)[0][:, None]
+
+
+@_onto_disk.defjvp
+def _onto_disk_jvp(primals, tangents):
+    """The projection's derivative, written so that every factor is bounded. Outside the
+    disk, ``p = r u`` with ``u = w/|w|``, and ``dp = dr u + (r/|w|)(I - u u^T) dw``, where
+    ``r/|w| < 1`` and ``|u| = 1``; inside, ``dp = dw``. Differentiated by JAX, the
+    reciprocal square root's ``-q^(-3/2)/2`` overflows in float32 for ``|w| < 1e-13`` and is
+    multiplied by ``r = 0`` (a slot that touches without pushing: no friction): NaN, in the
+    sweeps' Jacobian and so in a whole rollout's gradient (four cubes touching in a 2x2 grid,
+    float32: ``benchmarks/repro/grid_gradient_nan.py``;
+    ``tests/test_contact.py::test_a_slot_touching_without_pushing_has_a_finite_solve_derivative``)."""
+    wanted, radius = primals
+    d_wanted, d_radius = tangents
+    scale, outside, inverse = _disk_scale(wanted, radius)
+    unit = wanted * inverse[:, None]
+    along = unit[:, 0] * d_wanted[:, 0] + unit[:, 1] * d_wanted[:, 1]
+    sliding = d_radius[:, None] * unit + scale[:, None] * (d_wanted - unit * along[:, None])
+    return wanted * scale[:, None], jnp.where(outside[:, None], sliding, d_wanted)
 
 
 def _slip_after(c: _Colour, u, d_n):
@@ -876,7 +906,8 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         power = a_mat * kept[:, None] * kept[None, :]
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
             power = power @ power
-        return a_mat, jnp.max(jnp.abs(power)) <= FORGOTTEN
+        # A Jacobian with a NaN must not be frozen: its max had let one through here.
+        return a_mat, (jnp.max(jnp.abs(power)) <= FORGOTTEN) & jnp.all(jnp.isfinite(power))
 
     def no_contraction(_):
         return jnp.zeros((lam.size, lam.size), lam.dtype), jnp.zeros((), bool)
