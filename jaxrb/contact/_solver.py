@@ -906,7 +906,8 @@ def _pgs_jvp(iterations, normal_only, tolerance, frozen_derivative, primals, tan
         power = a_mat * kept[:, None] * kept[None, :]
         for _ in range(max(1, int(np.ceil(np.log2(iterations))))):
             power = power @ power
-        # A Jacobian with a NaN must not be frozen: its max had let one through here.
+        # A Jacobian with a NaN must not be frozen. The max alone let one through: XLA:CPU's
+        # max reduction skips NaN (an all-NaN matrix's max came out -inf, and passed).
         return a_mat, (jnp.max(jnp.abs(power)) <= FORGOTTEN) & jnp.all(jnp.isfinite(power))
 
     def no_contraction(_):
