@@ -1685,3 +1685,45 @@ def test_cans_stand_lie_and_cross_on_each_other():
     np.testing.assert_allclose(c.gap[c.active], 1e-4, atol=1e-15)
     assert np.min(c.point[c.active][:, 0]) == pytest.approx(-0.06, abs=1e-12)
     assert np.max(c.point[c.active][:, 0]) == pytest.approx(0.06, abs=1e-12)
+
+
+def test_an_edge_lying_in_a_clip_plane_has_a_bounded_derivative():
+    """float32: a square's edge lies in the clip plane to rounding, its ends one ulp either
+    side of it (as where two cube faces have the same footprint). It crosses anywhere, so
+    the crossing point is kept where rounding puts it, and it moves with the edge: the
+    derivative of the clipped polygon with respect to the square's vertices is bounded
+    (at most 1 here). Before, it moved along the edge at 1/(d_a - d_b), 1e8 per m, and a
+    3-cube float32 tower's gradient grew to 5e10 over 200 steps. A genuinely crossing edge
+    keeps its derivative (against central differences in float64)."""
+    from jaxrb.collision._box import _clip
+
+    f32 = jnp.float32
+    offset = jnp.asarray(0.05, f32)
+    above, below = np.nextafter(np.float32(0.05), np.float32(1)), np.nextafter(np.float32(0.05), np.float32(0))
+    square = np.zeros((8, 3), np.float32)
+    square[:4] = [[below, -0.05, 0.1], [above, 0.05, 0.1], [-0.05, 0.05, 0.1], [-0.05, -0.05, 0.1]]
+    normal = jnp.asarray([1.0, 0.0, 0.0], f32)
+
+    def clipped(polygon):
+        return _clip(polygon, jnp.asarray(4), normal, offset)[0]
+
+    points, count = _clip(jnp.asarray(square), jnp.asarray(4), normal, offset)
+    assert np.asarray(points[:int(count)])[:, 0].max() <= 0.05 + 1e-8
+    jacobian = np.asarray(jax.jacfwd(clipped)(jnp.asarray(square)))
+    assert np.all(np.isfinite(jacobian))
+    assert np.abs(jacobian).max() <= 1.0 + 1e-6
+
+    tilted = np.array(square, np.float64)
+    tilted[0, 0], tilted[1, 0] = 0.04, 0.06  # the edge crosses x = 0.05 at its middle
+
+    def clipped64(polygon):
+        return _clip(polygon, jnp.asarray(4), jnp.asarray([1.0, 0.0, 0.0]), jnp.asarray(0.05))[0]
+
+    jacobian = np.asarray(jax.jacfwd(clipped64)(jnp.asarray(tilted)))
+    h = 1e-7
+    for vertex, axis in ((0, 0), (1, 0), (1, 1)):
+        e = np.zeros_like(tilted)
+        e[vertex, axis] = h
+        fd = (np.asarray(clipped64(jnp.asarray(tilted + e))) - np.asarray(clipped64(jnp.asarray(tilted - e)))) / (2 * h)
+        np.testing.assert_allclose(jacobian[..., vertex, axis], fd, atol=1e-6)
+    assert np.abs(jacobian).max() > 0.4  # the crossing point slides along the edge
