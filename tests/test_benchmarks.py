@@ -117,6 +117,17 @@ def test_contact_fuzz_gradients_quick(tmp_path):
 
 
 @pytest.mark.slow
+def test_gradient_growth_quick(tmp_path):
+    # One turned cube resting on the ground, 3 steps: a shift of its height stays a shift,
+    # so d sum(z_final) / d z_initial is 1 and no step grows the cotangent.
+    (row,) = load("gradient_growth").main(["cube_rot30", "--steps", "3", "--out", str(tmp_path)])
+    assert row["first_nonfinite_step"] is None
+    assert abs(row["dz0"][0] - 1.0) < 1e-5 and abs(row["largest_state_gradient"] - 1.0) < 1e-5
+    assert len(row["cotangent_size"]) == 3
+    assert json.loads((tmp_path / "gradient_growth.json").read_text())[0]["scene"] == "cube_rot30"
+    assert (tmp_path / "gradient_growth.png").stat().st_size > 0
+
+
 def test_work_precision_benchmark_quick(tmp_path):
     import jaxrb as rb
 
