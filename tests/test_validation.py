@@ -347,6 +347,27 @@ def test_an_integer_dtype_is_refused():
         scene_of(BALL).state(angular_velocity=(0.5, 0.0, 0.0), dtype=jnp.int32)
 
 
+def test_a_half_precision_dtype_is_refused():
+    # bfloat16 was accepted, and a ball 1.1 m up never fell: each 1 ms step's fall rounded
+    # away against its 8 mm ulp. float16 fell, but its 1e-3 relative rounding is no physics.
+    scene = rb.Scene([rb.Body("ball", rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
+    for dtype in (jnp.float16, jnp.bfloat16):
+        with pytest.raises(ValueError, match="too coarse.*float32 or float64"):
+            scene.params(dtype=dtype)
+        with pytest.raises(ValueError, match="too coarse"):
+            scene.state(position=[(0.0, 0.0, 1.1)], dtype=dtype)
+    # Made by hand, past scene.params: the step refuses them too.
+    params = scene.params()
+    step = rb.make_step(scene, rb.integrators.SymplecticSplitting(), dt=1e-3)
+    state = step.prepare(scene.state(params, position=[(0.0, 0.0, 1.1)]))
+    half = jax.tree.map(lambda x: x.astype(jnp.bfloat16) if jnp.issubdtype(x.dtype, jnp.floating) else x, params)
+    with pytest.raises(ValueError, match="Params.mass's dtype is bfloat16, too coarse"):
+        step(half, state)
+    half_state = jax.tree.map(lambda x: x.astype(jnp.bfloat16), state)
+    with pytest.raises(ValueError, match="State.position's dtype is bfloat16, too coarse"):
+        rb.rollout(step, params, half_state, 3)
+
+
 def test_per_body_restitution_and_friction_are_checked_and_a_frictionless_ground_has_a_gradient():
     scene = rb.Scene([rb.Body("ball", rb.Sphere(0.1), mass=1.0)], ground=rb.Plane(), contacts="all")
     # Checked before the rule combines them: max(-3, 0) = 0 and sqrt(-0.4 * -0.9) = 0.6 passed.
