@@ -199,6 +199,9 @@ def plot(rows, path):
     for r in rows:
         steps = np.arange(r["steps"] - 1, r["steps"] - 1 - len(r["cotangent_size"]), -1)
         ax.semilogy(steps, r["cotangent_size"], label=f"{r['scene']} ({r['dtype']})")
+    finite = [v for r in rows for v in r["cotangent_size"] if np.isfinite(v) and v > 0]
+    if finite:  # at least a decade either side of 1, so that a flat 1.0 reads as one
+        ax.set_ylim(min(0.1, min(finite) / 2), max(10.0, 2 * max(finite)))
     ax.set_xlabel("step k (walking back from the last)")
     ax.set_ylabel("largest entry of d sum(z_final) / d state_k")
     ax.invert_xaxis()
