@@ -67,8 +67,12 @@ def _scene(name):
 SCENES = ("two_cubes", "tower3", "bridge", "grid", "grid_rot30", "row_rot30", "cube_rot30")
 
 
-def build(name, dtype, solver="pgs"):
+def build(name, dtype, solver="pgs", lift=0.0):
+    """``(step, params, prepared state)`` of a named scene; ``lift`` (m) is added to every
+    initial height (negative: the cubes start that far into the ground and each other's
+    planes stay flush)."""
     bodies, pose = _scene(name)
+    pose["position"] = [(x, y, z + lift) for x, y, z in pose["position"]]
     scene = rb.Scene(bodies, ground=rb.Plane(), contacts="all")
     params = scene.params(friction=0.5, restitution=0.0, dtype=dtype)
     state = scene.state(params, **pose)
@@ -84,9 +88,9 @@ def _size(tree):
     return float(np.nan) if not np.all(np.isfinite(flat)) else float(np.max(np.abs(flat)))
 
 
-def walk(name, dtype, steps, solver="pgs"):
+def walk(name, dtype, steps, solver="pgs", lift=0.0):
     """Forward step by step, then the reverse walk. Returns a result dict and the states."""
-    step, params, state = build(name, dtype, solver)
+    step, params, state = build(name, dtype, solver, lift)
     one = jax.jit(step)
     states = [state]
     for _ in range(steps):
@@ -115,7 +119,7 @@ def walk(name, dtype, steps, solver="pgs"):
     top = sorted((g for g in growth if math.isfinite(g[1])), key=lambda g: -g[1])[:3]
     drift = float(np.max(np.abs(np.asarray(final.position - states[0].position))))
     return dict(
-        scene=name, dtype=str(jnp.dtype(dtype)), solver=solver, steps=steps,
+        scene=name, dtype=str(jnp.dtype(dtype)), solver=solver, steps=steps, lift=lift,
         largest_state_gradient=_size(ct), largest_param_gradient=_size(gp),
         dz0=np.asarray(ct.position[:, 2]).tolist(),
         first_nonfinite_step=first_bad, top_growth=[(k, round(g, 3)) for k, g in top],
@@ -164,6 +168,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--dtype", default="float32", choices=("float32", "float64"))
     ap.add_argument("--solver", default="pgs")
+    ap.add_argument("--lift", type=float, default=0.0, help="m added to every initial height")
     ap.add_argument("--jacobian", type=int, default=None, help="compare this step's Jacobian (needs x64)")
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path(__file__).parent / "results")
     args = ap.parse_args(argv)
@@ -174,7 +179,7 @@ def main(argv=None):
     print(f"{'scene':12s} {'dtype':8s} {'max|dL/ds0|':>12s} {'first NaN':>9s}  largest growth (step, x)   dz0")
     for name in args.scenes:
         t = time.perf_counter()
-        r, states, _ = walk(name, dtype, args.steps, args.solver)
+        r, states, _ = walk(name, dtype, args.steps, args.solver, args.lift)
         r["seconds"] = round(time.perf_counter() - t, 1)
         rows.append(r)
         print(f"{name:12s} {r['dtype']:8s} {r['largest_state_gradient']:12.4g} "

@@ -53,10 +53,10 @@ __all__ = ["box_box", "box_box_separation"]
 #: slope of a side plane (its ends' distances to the plane differ by at most this fraction
 #: of its length). Such a point slides along the edge at 1/slope times the rate the bodies
 #: move: where two float64 cubes touch along a shared edge, tilted against each other by
-#: 1e-11 rad, it slid at 1e11 m per m. A resting float64 2x2 grid's largest gradient entry
-#: through 100 steps fell from 10 to 4.2 with it (still wrong: one-sided finite differences
-#: of the heights give 0 and 1; benchmarks/README.md, stop 95). The value is unchanged; the
-#: derivative then leaves out the slide, which is at most the edge's length.
+#: 1e-11 rad, it slid at 1e11 m per m, and a resting float64 2x2 grid's largest gradient
+#: entry through 100 steps fell from 10 to 4.2 with it (the rest is the contacts' kink:
+#: benchmarks/README.md, stop 95). The value is unchanged; the derivative then leaves out
+#: the slide, which is at most the edge's length.
 PARALLEL_SLOPE = 1e-3
 _MAX_POLYGON = 8  # a quad clipped by 4 half-planes gains at most one vertex per plane
 
