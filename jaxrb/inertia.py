@@ -416,6 +416,11 @@ def from_point_masses(
         # A zero total (or masses of both signs) put the com at inf or NaN without a word.
         raise ValueError(f"from_point_masses: masses must be finite and >= 0 with a positive total (kg), "
                          f"got {known}.")
+    # A NaN position had given a NaN inertia, and an infinite one a com of [inf, 0, 0].
+    where = _concrete_array(positions)
+    if where is not None and not np.all(np.isfinite(where)):
+        raise ValueError(f"from_point_masses: positions must be finite (m); rows "
+                         f"{np.flatnonzero(~np.all(np.isfinite(where), axis=1)).tolist()} are not.")
     return _point_masses(masses, positions)
 
 
@@ -567,6 +572,12 @@ def compose(parts: Sequence[MassProperties]) -> MassProperties:
         raise ValueError(f"compose: the parts' total mass must be finite and > 0 (kg), got {total}.")
     coms = jnp.stack([p.com for p in parts])
     inertias = jnp.stack([p.inertia for p in parts])
+    # A part with a NaN com or inertia had made the whole body NaN without a word.
+    for name, values in (("mass", masses), ("com", coms), ("inertia", inertias)):
+        known = _concrete_array(values)
+        if known is not None and not np.all(np.isfinite(known)):
+            bad = np.flatnonzero(~np.all(np.isfinite(known.reshape(len(parts), -1)), axis=1)).tolist()
+            raise ValueError(f"compose: every part's {name} must be finite; parts {bad} are not.")
     return _compose(masses, coms, inertias)
 
 
@@ -715,7 +726,9 @@ def principal_axes(
     First derivatives only, where moments repeat: second derivatives (``jax.hessian``) differentiate the
     rule's own eigen-decomposition, and are right for distinct moments (1e-15) but wrong where two
     moments are equal, even of smooth functions of the inertia (the Hessian of ``sum(moments**2)``
-    of an axisymmetric box 0.5% off, of a cube's by 1e10: stop 90's review). Individual
+    of an axisymmetric box 0.5% off, of a cube's by 1e10: stop 90's review), and NaN
+    through :func:`repeated_moment_coupling`'s tangent at an exactly diagonal inertia with
+    repeated moments (reverse mode over its rule: stop 96's review). Individual
     moments are not differentiable there in a direction that breaks the symmetry.
     """
     inertia = jnp.asarray(inertia)

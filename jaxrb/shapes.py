@@ -305,10 +305,24 @@ def _check_closed_and_oriented(vertices, faces, precision: float) -> None:
 
 
 def _check_parts_outward(vertices, corners, precision: float) -> None:
-    """Raise if a connected part of a closed mesh is inside out (negative volume) without
-    being a cavity inside another part. Each part then passes the edge test on its own, and
-    the total volume can still be positive: a mesh of two cubes, one wound inward, had
-    come out with volume 7 instead of 9, its centre of mass outside both.
+    """Raise unless the connected parts of a closed mesh nest as the boundary of one solid:
+    each part wound outward (positive volume) lies outside every other part's solid, and
+    each part wound inward (a cavity) lies inside exactly one more of them than it would as
+    an outward part. Each part passes the edge test on its own, and the mesh's total volume
+    can still be positive:
+
+    - two cubes, one wound inward, had come out with volume 7 instead of 9, its centre of
+      mass outside both;
+    - a cavity wound outward (the commonest export mistake: the inner shell of a hollow
+      body wound like an outer one) added its volume instead of removing it (a 2 m cube with
+      a 1 m cavity: 9 instead of 7), and a cavity inside a cavity removed material twice
+      (6.875), both silently (stop 96's review).
+
+    The test takes points just behind up to eight faces spread over each part, on their
+    material side, and the winding number of all other parts' faces about each: 0 for an
+    outward part, 1 for a cavity. An outward part is refused where one of those points lies
+    inside the others' solid, a cavity where none does: two outward parts that overlap are
+    refused when one of the points tested lies inside the other, not always.
     ``vertices``: the distinct positions; ``corners``: ``(F, 3)`` face corners indexing them;
     ``precision``: the relative rounding of the vertices as given (their dtype's eps)."""
     import numpy as np
@@ -323,38 +337,67 @@ def _check_parts_outward(vertices, corners, precision: float) -> None:
             break
         labels = new
     part = labels[corners[:, 0]]
-    # About the vertices' mean, in float64: the signed volumes of a mesh far from its origin
-    # would cancel there.
-    centred = np.asarray(vertices, np.float64) - np.mean(np.asarray(vertices, np.float64), axis=0)
+    # About each part's own vertex mean, in float64: the signed volumes of a part far from
+    # that point cancel, and the rounding bound below grows with the distances from it (a
+    # 2 cm cube 10 km from a 1 m one in the same mesh was refused as flat).
+    vertices = np.asarray(vertices, np.float64)
+    counts = np.maximum(np.bincount(labels, minlength=len(vertices)), 1)
+    means = np.stack([np.bincount(labels, weights=vertices[:, i], minlength=len(vertices)) for i in range(3)], -1)
+    centred = vertices - (means / counts[:, None])[labels]
     a, b, c = (centred[corners[:, k]] for k in range(3))
     terms = np.einsum("fi,fi->f", a, np.cross(b, c)) / 6.0
     volume = np.bincount(part, weights=terms)
     # A part whose volume is within the rounding of its terms encloses none (all its
     # vertices in a plane): its sign is the rounding's, and the mesh was accepted or called
     # inside out by where it was placed, an accepted flat tetrahedron given moments from
-    # noise (stop 90's review).
-    # Each term's rounding is eps |a| |b| |c|, not eps |term| (a flat part's terms are each
-    # near 0, their apex lying in its plane), and the vertices' own rounding, ``precision
-    # |x|_max`` each, moves it by up to that times (|a||b| + |b||c| + |c||a|).
+    # noise (stop 90's review). Each term's own rounding is eps |a| |b| |c|, not eps
+    # |term| (a flat part's terms are each near 0, their apex lying in its plane). The
+    # vertices' rounding as given, ``precision |x|_max`` each, moves a term by at most that
+    # times |b x c| + |c x a| + |a x b| (its gradient in a, b and c), to first order.
+    # With products of norms for those, and a factor 64, float32 cubes of 3 cm and less
+    # 1000 m from the origin were refused as flat (real rounding about 1% of their volume).
     na, nb, nc = np.linalg.norm(np.stack([a, b, c]), axis=-1)
     far = precision * np.max(np.abs(vertices))
-    sizes = (np.finfo(np.float64).eps * na * nb * nc + far * (na * nb + nb * nc + nc * na)) / 6.0
-    rounding = 64 * np.bincount(part, weights=sizes)
+    spread = sum(np.linalg.norm(np.cross(x, y), axis=-1) for x, y in ((b, c), (c, a), (a, b)))
+    sizes = (np.finfo(np.float64).eps * na * nb * nc + far * spread) / 6.0
+    rounding = 8 * np.bincount(part, weights=sizes)
     for k in np.flatnonzero((np.abs(volume) <= rounding) & (np.bincount(part) > 0)):
         raise ValueError(
             f"A connected part of the mesh ({int(np.sum(part == k))} faces) encloses no volume ({volume[k]:.3g} "
             f"m^3, within rounding): its faces lie in a plane or fold onto each other. A solid needs a closed "
             "surface around a volume; model a thin part as a thin solid (a box of small thickness).")
-    outward = volume > 0
-    for k in np.flatnonzero((volume < 0) & (np.bincount(part) > 0)):
-        point = a[np.flatnonzero(part == k)[0]]
-        inside = outward[part]  # faces of the parts that are the right way out
-        if _winding_number(point, a[inside], b[inside], c[inside]) < 0.5:
+    parts = np.flatnonzero(np.bincount(part) > 0)
+    if len(parts) < 2:
+        return
+    normals = np.cross(b - a, c - a)
+    twice_area = np.linalg.norm(normals, axis=-1)
+    area = np.bincount(part, weights=twice_area / 2)
+    for k in parts:
+        own = np.flatnonzero((part == k) & (twice_area > 0))
+        chosen = own[np.linspace(0, len(own) - 1, min(8, len(own))).astype(int)]
+        # Just behind each chosen face, on its material side (inside an outward part, in the
+        # solid around a cavity): by a thousandth of the part's mean thickness, so a point
+        # is neither on its own surface nor on that of a part it touches (a vertex on
+        # another part's face had counted 0 or 1 there, by the rounding of a zero solid angle).
+        depth = 1e-3 * abs(volume[k]) / area[k]
+        # (In the mesh's own coordinates: each part's centred ones have their own origin.)
+        points = vertices[corners[chosen]].mean(axis=1) - depth * normals[chosen] / twice_area[chosen, None]
+        others = [vertices[corners[part != k, j]] for j in range(3)]
+        inside = max(_winding_number(point, *others) for point in points)
+        size = int(np.sum(part == k))
+        if volume[k] < 0 and inside < 0.5:
             raise ValueError(
-                f"A connected part of the mesh ({int(np.sum(part == k))} faces) is inside out: its volume is "
-                f"{volume[k]:.4g} m^3 and it is not a cavity inside another part, so its volume and inertia would "
-                f"be subtracted. Check the face orientation: reverse the vertex order of that part's faces "
-                f"(counter-clockwise seen from outside).")
+                f"A connected part of the mesh ({size} faces) is inside out: its volume is {volume[k]:.4g} m^3 and "
+                f"it is not a cavity inside another part, so its volume and inertia would be subtracted. Check the "
+                f"face orientation: reverse the vertex order of that part's faces (counter-clockwise seen from "
+                f"outside).")
+        if volume[k] > 0 and inside > 0.5:
+            raise ValueError(
+                f"A connected part of the mesh ({size} faces, volume {volume[k]:.4g} m^3) is wound outward but lies "
+                f"inside the solid of the other parts, so its volume and inertia would be counted twice. If it is "
+                f"a cavity, reverse the vertex order of its faces (a cavity's faces are counter-clockwise seen from "
+                f"inside it, so that its normals point into the cavity); if it is a separate solid, it must not "
+                f"overlap the others.")
 
 
 def _winding_number(point, a, b, c) -> float:

@@ -1105,3 +1105,73 @@ def test_the_primitives_refuse_impossible_sizes_and_masses():
     # Traced sizes and masses pass the checks.
     np.testing.assert_allclose(jax.grad(lambda r: inertia.sphere(2.0, r).inertia[0, 0])(1.0), 1.6, rtol=1e-6)
     assert jax.vmap(lambda r: inertia.cylinder(1.0, r, 1.0).inertia[2, 2])(jnp.array([1.0, 2.0])).shape == (2,)
+
+
+def test_mesh_parts_must_nest_as_one_solid():
+    """A cavity wound outward (the inner shell of a hollow body wound like an outer one) had
+    added its volume instead of removing it, and a cavity inside a cavity removed material
+    twice, both silently (stop 96's review): a 2 m cube with a 1 m cavity came out 9 and
+    6.875 m^3 instead of 7. Both are refused now; an island inside a cavity, two cavities
+    side by side and separate solids stay valid."""
+    cube, faces = _box_mesh(np.array([0.5, 0.5, 0.5]), np.eye(3), np.zeros(3))
+    n = len(cube)
+
+    def mesh(*parts):  # (scale, offset, inward) per part
+        vertices = np.vstack([s * cube + np.asarray(o, float) for s, o, _ in parts])
+        tris = np.vstack([(faces[:, ::-1] if inward else faces) + k * n for k, (_, _, inward) in enumerate(parts)])
+        return vertices, tris
+
+    hollow = mesh((2, 0, False), (1, 0, True))
+    assert float(inertia.volume(shapes.Mesh(*hollow))) == pytest.approx(7.0)
+    # The hollow cube's inertia is the solid one's less the cavity's.
+    solid, cavity = inertia.box(8.0, jnp.ones(3)), inertia.box(1.0, jnp.full(3, 0.5))
+    expected = np.asarray(solid.inertia) - np.asarray(cavity.inertia)
+    np.testing.assert_allclose(np.asarray(inertia.from_mesh(*hollow, density=1.0).inertia), expected, rtol=1e-12)
+    outward_cavity = mesh((2, 0, False), (1, 0, False))
+    for build in (lambda: shapes.Mesh(*outward_cavity), lambda: inertia.from_mesh(*outward_cavity, density=1.0)):
+        with pytest.raises(ValueError, match=r"\(12 faces, volume 1 m\^3\) is wound outward but lies inside"):
+            build()
+    with pytest.raises(ValueError, match="is inside out"):
+        shapes.Mesh(*mesh((4, 0, False), (2, 0, True), (1, 0, True)))  # a cavity inside a cavity
+    with pytest.raises(ValueError, match="wound outward but lies inside"):
+        shapes.Mesh(*mesh((2, 0, False), (2, (0.5, 0.5, 0.5), False)))  # two solids overlapping
+    for parts, volume in ((((4, 0, False), (2, 0, True), (1, 0, False)), 64 - 8 + 1),  # an island in a cavity
+                          (((4, 0, False), (1, (-1, 0, 0), True), (1, (1, 0, 0), True)), 64 - 2),
+                          (((1, 0, False), (1, (3, 0, 0), False)), 2),
+                          (((1, 0, False), (0.5, (0.75, 0, 0), False)), 1.125)):  # touching face to face
+        assert float(inertia.volume(shapes.Mesh(*mesh(*parts)))) == pytest.approx(volume, rel=1e-12)
+
+
+def test_small_float32_meshes_far_from_the_origin_are_not_called_flat():
+    """The flat-part test bounded each part's rounding by products of vertex distances times
+    64, from the whole mesh's vertex mean: float32 cubes of 3 cm and less 1000 m from the
+    origin were refused as enclosing no volume (their rounding is about 1% of it), and so
+    was a 2 cm cube 10 km from a 1 m cube in a float64 mesh (stop 96's review)."""
+    for side in (0.03, 0.01, 0.005):
+        vertices, faces = _box_mesh(np.full(3, side / 2), np.eye(3), np.full(3, 1e3))
+        mass = inertia.from_mesh(vertices.astype(np.float32), faces, density=1.0).mass
+        assert float(mass) == pytest.approx(side**3, rel=0.05)
+    big, faces = _box_mesh(np.full(3, 0.5), np.eye(3), np.zeros(3))
+    small, _ = _box_mesh(np.full(3, 0.01), np.eye(3), np.array([1e4, 0.0, 0.0]))
+    both = inertia.from_mesh(np.vstack([big, small]), np.vstack([faces, faces + len(big)]), density=1.0)
+    assert float(both.mass) == pytest.approx(1.0 + 0.02**3, rel=1e-9)
+
+
+def test_non_finite_positions_and_parts_are_refused():
+    """from_point_masses checked only the masses (a NaN position gave a NaN inertia, an
+    infinite one a com of [inf, 0, 0]), and compose only the total mass."""
+    for bad in (np.nan, np.inf):
+        positions = np.eye(3).copy()
+        positions[1, 2] = bad
+        with pytest.raises(ValueError, match=r"positions must be finite \(m\); rows \[1\] are not"):
+            inertia.from_point_masses(np.ones(3), positions)
+    part = inertia.box(1.0, jnp.full(3, 0.5))
+    for broken in (MassProperties_with(part, com=jnp.array([0.0, jnp.nan, 0.0])),
+                   MassProperties_with(part, inertia=part.inertia.at[0, 0].set(jnp.inf))):
+        with pytest.raises(ValueError, match=r"compose: every part's (com|inertia) must be finite; parts \[1\]"):
+            inertia.compose([part, broken])
+
+
+def MassProperties_with(part, **changes):  # noqa: N802
+    fields = {"mass": part.mass, "com": part.com, "inertia": part.inertia, **changes}
+    return inertia.MassProperties(fields["mass"], fields["com"], fields["inertia"])
