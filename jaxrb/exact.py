@@ -223,8 +223,7 @@ def torque_free_top(inertia, omega0_body, times, orientation0=None) -> TorqueFre
         # Near the separatrix the float m fixes ellipj's own period only to ~ulp/(1 − m); reducing τ with
         # the accurate period stops that phase error from growing period after period (Dzhanibekov case).
         tau = lam * s + tau0
-        sn, cn, _, _ = ellipj(tau - period * np.round(tau / period), m)
-        return sn, cn, np.sqrt(cn * cn + m1 * sn * sn)  # dn² = cn² + (1 − m) sn², free of cancellation
+        return _jacobi_reduced(tau - period * np.round(tau / period), m, m1, period / 4.0)
 
     sn, cn, dn = jacobi(t)
     omega = np.empty((t.size, 3))
@@ -248,6 +247,33 @@ def torque_free_top(inertia, omega0_body, times, orientation0=None) -> TorqueFre
 #: finder leaves it ~1e-16 off, and another root that close would be a double root.
 _POLE = 1e-12
 
+
+
+def _jacobi_reduced(u, m, m1, quarter):
+    """``sn, cn, dn (u | m)`` for ``|u| <= 2K``, from ``ellipj`` at ``|u| <= K/2`` only.
+
+    For ``1 − m`` below 1e-10 scipy's ``ellipj`` switches to an expansion about ``m = 1``
+    that holds for small ``u`` only: at ``1 − m = 1e-12``, ``cn(2K)`` came out −2 and
+    ``cn(3K)`` −8e6, and the free top's ``|I ω|`` drifted from ``L`` by 120% after 13 s
+    (stop 96's review). Half periods (``sn(u ± 2K) = −sn u``, ``cn(u ± 2K) = −cn u``) bring
+    ``u`` into ``[−K, K]``, and the reflection about the quarter period (``sn(K − v) = cn v /
+    dn v``, ``cn(K − v) = sqrt(1 − m) sn v / dn v``, ``dn(K − v) = sqrt(1 − m) / dn v``) into
+    ``|v| <= K/2``, where the expansion's error is about ``16 (1 − m)`` relative. ``dn`` is
+    taken as ``sqrt(cn² + (1 − m) sn²)``, free of the cancellation of ``1 − m sn²``.
+    ``m1``: ``1 − m`` computed without cancellation; ``quarter``: ``K(m)``."""
+    u = np.asarray(u, dtype=float)
+    flip = np.abs(u) > quarter
+    u = np.where(flip, u - np.copysign(2.0 * quarter, u), u)
+    sign = np.where(flip, -1.0, 1.0)
+    reflect = np.abs(u) > quarter / 2.0
+    v = np.where(reflect, quarter - np.abs(u), u)
+    sn_v, cn_v, _, _ = ellipj(v, m)
+    dn_v = np.sqrt(cn_v * cn_v + m1 * sn_v * sn_v)
+    root = np.sqrt(m1)
+    sn = np.where(reflect, np.copysign(1.0, u) * cn_v / dn_v, sn_v)
+    cn = np.where(reflect, root * sn_v / dn_v, cn_v)
+    dn = np.where(reflect, root / dn_v, dn_v)
+    return sign * sn, sign * cn, dn
 
 def _shifted_cubic_roots(beta, f2, f1, f0):
     """Real roots x1 <= x2 <= x3 of ``β x³ + f2 x² + f1 x + f0`` with f0 >= 0 (x = u − u0)."""
