@@ -81,7 +81,9 @@ def tumbling(rng, quick, **fit_options):
     info = result.identifiability()
     print(info)
     fitted = np.diag(np.asarray(result.params.inertia[0]))
-    report("I2/I1, I3/I1", moments[1:] / moments[0], fitted[1:] / fitted[0], [np.nan, np.nan])
+    # Each moment's standard error is inf (the scale is not determined), their ratios' is not.
+    ratio_std = info.std_of(lambda v: v[1:3] / v[0])  # v: the free values, in info.labels' order
+    report("I2/I1, I3/I1", moments[1:] / moments[0], fitted[1:] / fitted[0], ratio_std)
     return float(np.max(np.abs((fitted[1:] / fitted[0]) / (moments[1:] / moments[0]) - 1))), result
 
 

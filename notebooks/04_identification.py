@@ -138,8 +138,13 @@ print(report)
 
 # %% [markdown]
 # The smallest relative singular value is at rounding level, and its direction is the
-# inertia itself: the scale. The other five are determined, with standard errors that
-# the covariance gives once the scale is fixed.
+# inertia itself: the scale. So every moment's standard error is `inf`, but what the data
+# do determine keeps a finite one: `report.std_of(quantity)` propagates the covariance to
+# any function of the free values (in the order of `report.labels`), here the ratios.
+
+# %%
+ratio_std = report.std_of(lambda v: v[1:3] / v[0])  # labels: xx, yy, zz, xy, xz, yz
+print("I2/I1, I3/I1:", (np.diag(fitted)[1:] / fitted[0, 0]).round(4), "+-", ratio_std.round(4))
 
 # %%
 fig, ax = plt.subplots(figsize=(6, 3))

@@ -457,6 +457,18 @@ def test_tumbling_cannot_tell_the_inertia_scale(tumbling):
     relative = report.values / np.where(np.abs(report.values) > 0, np.abs(report.values), 1.0)
     assert abs(direction @ relative) / np.linalg.norm(relative) > 0.999
     assert "UNIDENTIFIABLE" in str(report) and "inertia[body].xx" in str(report)
+    # The ratios the data do determine keep finite standard errors where every moment's is
+    # inf: the delta method over the determined directions, against the covariance with
+    # I_xx held at its value instead (another generalised inverse: the same for any
+    # combination the data determine, as the ratios are).
+    assert np.all(np.isinf(report.std[:3]))
+    ratios = report.std_of(lambda v: v[1:3] / v[0])
+    held = report.jacobian[:, 1:]
+    covariance = report.sigma2 * np.linalg.inv(held.T @ held)
+    np.testing.assert_allclose(ratios, np.sqrt(np.diag(covariance)[:2]) / report.values[0], rtol=1e-6)
+    assert np.all(ratios > 0) and ratios.shape == (2,)
+    np.testing.assert_allclose(report.std_of(lambda v: v[3:]), report.std[3:], rtol=1e-12)
+    assert np.isinf(report.std_of(lambda v: v[0] + v[1]))
 
 
 def test_free_fall_cannot_tell_the_mass():

@@ -95,6 +95,30 @@ class Identifiability:
         """True when every free parameter is determined by the data."""
         return not self.unidentifiable
 
+    def std_of(self, quantity: Callable) -> np.ndarray:
+        """Standard errors of quantities derived from the free parameters (the delta method).
+
+        ``quantity(values)`` takes the ``(p,)`` free values in the order of ``labels`` and
+        returns an array; the result has its shape: ``sqrt(g C g^T)`` per entry, with ``g``
+        its gradient at ``values`` and ``C`` :attr:`covariance`. ``inf`` where the entry
+        changes along an unidentifiable direction by 0.1 or more of its largest relative
+        sensitivity (for a parameter itself, the rule of :attr:`std`).
+
+        A combination the data do determine keeps a finite error even where its parts do
+        not: from torque-free tumbling, ``lambda v: v[1] / v[0]`` (the ratio of the first
+        two moments) where ``std`` is ``inf`` for every moment.
+        """
+        values = jnp.asarray(self.values)
+        outputs = np.asarray(quantity(values))
+        gradient = np.asarray(jax.jacobian(lambda v: jnp.ravel(jnp.asarray(quantity(v))))(values), float)
+        gradient = gradient.reshape(-1, values.size)
+        std = np.sqrt(np.maximum(np.einsum("qi,ij,qj->q", gradient, self.covariance, gradient), 0.0))
+        size = np.linalg.norm(gradient * self.scale[None, :], axis=1)
+        for _, direction in self.unidentifiable:
+            change = np.abs(gradient @ (self.scale * direction))
+            std = np.where(change >= 0.1 * size, np.inf, std)
+        return std.reshape(outputs.shape)
+
     def describe(self, direction, threshold: float = 0.1) -> str:
         """A direction as a change in the parameters' own units, normalised, largest first.
 
