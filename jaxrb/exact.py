@@ -248,7 +248,6 @@ def torque_free_top(inertia, omega0_body, times, orientation0=None) -> TorqueFre
 _POLE = 1e-12
 
 
-
 def _jacobi_reduced(u, m, m1, quarter):
     """``sn, cn, dn (u | m)`` for ``|u| <= 2K``, from ``ellipj`` at ``|u| <= K/2`` only.
 
@@ -274,6 +273,7 @@ def _jacobi_reduced(u, m, m1, quarter):
     cn = np.where(reflect, root * sn_v / dn_v, cn_v)
     dn = np.where(reflect, root / dn_v, dn_v)
     return sign * sn, sign * cn, dn
+
 
 def _shifted_cubic_roots(beta, f2, f1, f0):
     """Real roots x1 <= x2 <= x3 of ``β x³ + f2 x² + f1 x + f0`` with f0 >= 0 (x = u − u0)."""

@@ -306,10 +306,9 @@ def _check_closed_and_oriented(vertices, faces, precision: float) -> None:
 
 def _check_parts_outward(vertices, corners, precision: float) -> None:
     """Raise unless the connected parts of a closed mesh nest as the boundary of one solid:
-    each part wound outward (positive volume) lies outside every other part's solid, and
-    each part wound inward (a cavity) lies inside exactly one more of them than it would as
-    an outward part. Each part passes the edge test on its own, and the mesh's total volume
-    can still be positive:
+    each part wound outward (positive volume) lies outside the solid the other parts bound,
+    and each part wound inward (a cavity) lies inside it. Each part passes the edge test on
+    its own, and the mesh's total volume can still be positive:
 
     - two cubes, one wound inward, had come out with volume 7 instead of 9, its centre of
       mass outside both;
