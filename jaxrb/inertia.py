@@ -572,8 +572,9 @@ def compose(parts: Sequence[MassProperties]) -> MassProperties:
         raise ValueError(f"compose: the parts' total mass must be finite and > 0 (kg), got {total}.")
     coms = jnp.stack([p.com for p in parts])
     inertias = jnp.stack([p.inertia for p in parts])
-    # A part with a NaN com or inertia had made the whole body NaN without a word.
-    for name, values in (("mass", masses), ("com", coms), ("inertia", inertias)):
+    # A part with a NaN com or inertia had made the whole body NaN without a word (a
+    # non-finite mass makes the total so, refused above).
+    for name, values in (("com", coms), ("inertia", inertias)):
         known = _concrete_array(values)
         if known is not None and not np.all(np.isfinite(known)):
             bad = np.flatnonzero(~np.all(np.isfinite(known.reshape(len(parts), -1)), axis=1)).tolist()
