@@ -2457,6 +2457,34 @@ def test_the_exact_normal_solve_meets_targets_no_rigid_motion_meets(dtype):
             assert error < (1e-9 if dtype == jnp.float64 else 3e-3), (masses, error)
 
 
+def test_the_exact_solve_gives_a_slot_between_two_immovable_bodies_no_impulse():
+    """A slot between two bodies of infinite mass has a zero row in the Delassus matrix: no
+    impulse moves it. Closing it solved ``eps lambda = -offset`` and returned impulses of
+    5e41 (stop 96's review). Gauss-Seidel gives it none (``_safe_reciprocal``); so must the
+    exact solve, and the box's four corners beside it must still be solved exactly."""
+    from jaxrb.contact._lcp import normal_delassus, solve_exact
+    from jaxrb.contact._solver import Bodies, frames, normal_velocities
+
+    half = 0.1  # a 1 kg cube on the ground (row 1); rows 1 and 2 cannot move
+    bodies = Bodies(jnp.asarray([1.0, 0.0, 0.0]),
+                    jnp.asarray(np.stack([np.linalg.inv(np.eye(3) * (2 * half) ** 2 / 6), np.zeros((3, 3)),
+                                          np.zeros((3, 3))])),
+                    jnp.asarray([[0.0, 0.0, -0.0981], [0, 0, 0], [0, 0, 0]]), jnp.zeros((3, 3)))
+    points = [(sx * half, sy * half, 0.0) for sx in (-1, 1) for sy in (-1, 1)] + [(1.0, 0.0, 0.0)]
+    f = frames(bodies, [0, 0, 0, 0, 2], [1, 1, 1, 1, 1], jnp.asarray(points),
+               jnp.tile(jnp.asarray([0.0, 0.0, 1.0]), (5, 1)), jnp.asarray([[0, 0, half], [0, 0, 0], [0, 0, 0]]))
+    assert float(normal_delassus(bodies, f)[4, 4]) == 0.0
+    target = jnp.asarray([0.0, 0.0, 0.0, 0.0, 0.05])  # the immovable slot asked to separate
+    for mu in (0.0, 0.5):
+        moved, lam = solve_exact(bodies, f, jnp.arange(5)[:, None], target, jnp.full(5, mu), jnp.ones(5, bool),
+                                 jnp.zeros((5, 3)), 4, 8)
+        assert np.all(np.isfinite(np.asarray(lam)))
+        assert float(jnp.abs(lam[4]).max()) == 0.0, lam[4]
+        # The box stops: its corners' normal velocities are zero, its 0.0981 kg m/s shared by them.
+        np.testing.assert_allclose(np.asarray(normal_velocities(moved, f))[:4], 0.0, atol=1e-12)
+        np.testing.assert_allclose(float(lam[:4, 0].sum()), 0.0981, rtol=1e-12)
+
+
 def test_exact_solver_stack_in_pure_float32_holds():
     """The benchmark's 5-box stack (all 15 pairs, exact solver) for 2 s in a float32-only process.
 

@@ -77,6 +77,11 @@ def _newton_normals(a_mat, u_n, lam_n, target, active, iterations: int):
     """
     size = a_mat.shape[0]
     eye = jnp.eye(size, dtype=a_mat.dtype)
+    # A slot between two bodies that cannot move (both of infinite mass) has a zero row in
+    # ``A``: no impulse changes its velocity, and closing it solved ``eps lambda = -offset``
+    # (impulses of 5e41, stop 96's review). Gauss-Seidel gives such a slot no impulse
+    # (``_safe_reciprocal``); so does this solve.
+    active = active & (jnp.diag(a_mat) > 0)
     eps = jnp.finfo(a_mat.dtype).eps ** 0.75 * jnp.maximum(jnp.mean(jnp.diag(a_mat)), 1e-30)
     reg = a_mat + eps * eye
     offset = u_n - target - a_mat @ lam_n  # w(lambda) = A lambda + offset
