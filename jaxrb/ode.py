@@ -663,7 +663,11 @@ def solve_with_impacts(
             y0 = OdeState.from_state(current)
             start_gaps = gaps_at(current.time, y0)
             depth = 16 * eps * jnp.maximum(jnp.max(jnp.abs(current.position)), 1.0)
-            reference = jnp.where(start_gaps > 0, 0.0, start_gaps - depth)
+            # The event's level below a touching (or rounding-deep) start: a guard against
+            # re-detecting the contact just left, not physics, so it carries no derivative.
+            # With the start gap's, the floor moved with a touching start's height, and
+            # d(impact time)/d(height) came out 0 instead of 1/v (stop 97's review).
+            reference = jax.lax.stop_gradient(jnp.where(start_gaps > 0, 0.0, start_gaps - depth))
             dtmax, gap_atol = segment_bounds(current)
             controller = default_controller(solver, jnp.asarray(rtol, dtype), atol, dtmax=dtmax)
             event = diffrax.Event(condition, root_finder=SafeguardedNewton(atol=gap_atol), direction=False)

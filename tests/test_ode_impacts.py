@@ -269,3 +269,22 @@ def test_gradients_through_located_impacts_match_closed_forms_and_finite_differe
     np.testing.assert_allclose(forward, reverse, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="adjoint must be a diffrax adjoint instance"):
         outputs(x, adjoint="forward")
+
+
+def test_a_touching_starts_impact_time_has_the_derivative_of_its_height():
+    """A ball launched up at 1 m/s from exactly touching the ground lands at ``2 v / g``, and
+    ``d t / d h0 = 1 / sqrt(v^2 + 2 g h0) = 1 / v``. The event's level below a touching start
+    once carried the start gap's derivative, so the floor moved with the start: the
+    derivative came out 0 at ``h0 = 0`` (stop 97's review), while ``h0 = 1e-9`` gave 1."""
+    scene = ball_scene()
+    settings = rb.ContactSettings(restitution_threshold=0.0)
+
+    def impact_time(h0):
+        params = scene.params(restitution=0.8, friction=0.0)
+        state = scene.state(params, position=jnp.stack([0.0, 0.0, h0 + R]), velocity=(0.0, 0.0, 1.0))
+        return rb.ode.solve_with_impacts(scene, params, state, 0.3, max_impacts=1, contact=settings).impact_times[0]
+
+    np.testing.assert_allclose(float(jax.jit(impact_time)(0.0)), 2.0 / G, rtol=1e-12)
+    gradient = jax.jit(jax.grad(impact_time))
+    for h0 in (0.0, 1e-9):
+        np.testing.assert_allclose(float(gradient(h0)), 1.0 / np.sqrt(1.0 + 2 * G * h0), rtol=1e-9)
