@@ -89,7 +89,7 @@ def comparison_times(state: State, t_final: float, num_compare: int = 20) -> np.
     finite time later than ``state.time`` (0 had raised an IndexError, 2.5 given three
     uneven times, and an earlier t_final times running backwards)."""
     num_compare = _check_comparison_times(state, t_final, num_compare)
-    t0 = float(state.time)
+    t0, t_final = float(state.time), float(t_final)  # a JAX scalar t_final made the times immutable
     times = t0 + (t_final - t0) * np.arange(1, num_compare + 1) / num_compare
     times[-1] = t_final  # exactly, so that the reference ends where the rollouts do
     return times
@@ -153,10 +153,18 @@ def _relative(difference: np.ndarray, scale: float) -> float:
     return float(np.max(difference) / scale) if scale > 0 else float(np.max(difference))
 
 
+#: An error (m, m/s, rad, or relative) beyond which a run counts as failed: no simulation
+#: is being measured any more, and a log axis spanning 300 decades crashed matplotlib.
+DIVERGED = 1e30
+
+
 def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[str, Any]:
     """Errors of ``trajectory`` against ``reference`` (both ``(T, N, ...)`` per field), max over times and bodies.
 
-    Returns the :data:`METRICS` plus ``failed`` (any NaN or infinite value). Failed runs
+    Returns the :data:`METRICS` plus ``failed``: any NaN or infinite value in the state or
+    an error, or an error beyond :data:`DIVERGED` (a run that blew up but stayed finite:
+    a stiff spring's RK4 at ``omega dt = 5`` reached errors of 1e53 and was once called
+    the cheapest, while its attitude error stayed below pi; stop 97's review). Failed runs
     get infinite errors, so they are never the cheapest nor on the front.
     """
     leaves = [trajectory.position, trajectory.orientation, trajectory.velocity, trajectory.angular_momentum]
@@ -172,7 +180,7 @@ def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[st
     def distance(a, b):
         return np.linalg.norm(np.asarray(a, dtype=float) - np.asarray(b, dtype=float), axis=-1)
 
-    return {
+    errors = {
         "attitude_error": float(np.max(np.asarray(angle))),
         "position_error": float(np.max(distance(trajectory.position, reference.position))),
         "velocity_error": float(np.max(distance(trajectory.velocity, reference.velocity))),
@@ -180,8 +188,10 @@ def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[st
                                             float(np.max(np.linalg.norm(np.asarray(momentum_ref), axis=-1)))),
         "energy_error": _relative(np.abs(np.asarray(energy, dtype=float) - np.asarray(energy_ref, dtype=float)),
                                   float(np.max(np.asarray(energy_scale)))),
-        "failed": False,
     }
+    if not all(math.isfinite(e) and e <= DIVERGED for e in errors.values()):
+        return {**{m: math.inf for m in METRICS}, "failed": True}
+    return {**errors, "failed": False}
 
 
 # ----------------------------------------------------------------------------- result
@@ -198,7 +208,8 @@ class TradeoffResult:
             m/s, ``angular_momentum_error`` (world, about the origin, summed over bodies,
             relative to the reference's largest), ``energy_error`` (kinetic +
             gravitational, relative to the reference's ``max_t sum(T + |V|)``)),
-            ``failed`` (NaN or inf), ``compile_time`` (s, tracing + XLA compile) and
+            ``failed`` (NaN or inf, or an error beyond :data:`DIVERGED`), ``compile_time``
+            (s, tracing + XLA compile) and
             ``cost`` (wall seconds per simulated second of the compiled rollout, best of
             ``repeats``).
         times: the comparison times (s).
@@ -352,21 +363,27 @@ def _step_counts(dts, duration: float, num_compare: int, slack: float = 0.0) -> 
     return list(dict.fromkeys(counts))  # drop duplicates made by rounding, keep the order
 
 
+def _check_saved_times(saved: np.ndarray, times: np.ndarray, num_compare: int) -> None:
+    # Saved times carry the state's dtype: compare to its resolution, not float64's.
+    resolution = 4 * float(np.finfo(saved.dtype).eps) * float(np.max(np.abs(times)))
+    if saved.shape != times.shape or not np.allclose(saved, times, rtol=0, atol=resolution):
+        raise ValueError("The reference was saved at other times than comparison_times(state, t_final, "
+                         f"{num_compare}); build it with rb.reference_solution(...).")
+
+
 def _reference_trajectory(reference, num_compare: int, times: np.ndarray) -> State:
     if isinstance(reference, ode.Solution):
         if reference.trajectory is None:
             raise ValueError("The reference Solution has no trajectory: solve it with ts=comparison_times(...).")
-        saved = np.asarray(reference.ts)
-        # Saved times carry the state's dtype: compare to its resolution, not float64's.
-        resolution = 4 * float(np.finfo(saved.dtype).eps) * float(np.max(np.abs(times)))
-        if saved.shape != times.shape or not np.allclose(saved, times, rtol=0, atol=resolution):
-            raise ValueError("The reference was saved at other times than comparison_times(state, t_final, "
-                             f"{num_compare}); build it with rb.reference_solution(...).")
+        _check_saved_times(np.asarray(reference.ts), times, num_compare)
         return reference.trajectory
     if isinstance(reference, State):
         if reference.position.ndim != 3 or reference.position.shape[0] != num_compare:
             raise ValueError(f"A reference State must be stacked at the {num_compare} comparison times, leading "
                              f"axis {num_compare}; got position shape {reference.position.shape}.")
+        # Its own times, as a Solution's: one saved for another t_final was taken silently,
+        # and RK4's position error came out 12.8 m instead of 2.4e-15 (stop 97's review).
+        _check_saved_times(np.asarray(reference.time), times, num_compare)
         return reference
     raise ValueError(f"reference must be an rb.ode.Solution or a stacked rb.State, got {type(reference).__name__}.")
 

@@ -225,6 +225,15 @@ def test_failed_rows_are_never_chosen():
                           velocity=jnp.zeros((3, 2, 3)), angular_momentum=jnp.zeros((3, 2, 3)), time=jnp.zeros(3))
     metrics = tradeoff._row_metrics(params, trajectory, trajectory)
     assert metrics["failed"] and all(math.isinf(metrics[m]) for m in tradeoff.METRICS)
+    # A run that blew up but stayed finite (a stiff spring's RK4 at omega dt = 5 reached
+    # errors of 1e53 with its attitude error below pi, and was called the cheapest).
+    reference_run = dataclasses.replace(trajectory, position=jnp.zeros((3, 2, 3)))
+    for blown_up in (1e53, 1e300):
+        diverged = dataclasses.replace(reference_run, position=reference_run.position.at[-1, 0, 0].set(blown_up))
+        metrics_diverged = tradeoff._row_metrics(params, diverged, reference_run)
+        assert metrics_diverged["failed"] and all(math.isinf(metrics_diverged[m]) for m in tradeoff.METRICS)
+    near = dataclasses.replace(reference_run, position=reference_run.position.at[-1, 0, 0].set(1e3))
+    assert not tradeoff._row_metrics(params, near, reference_run)["failed"]  # a large error, still measured
     good = {**{m: 1e-3 for m in tradeoff.METRICS}, "failed": False, "cost": 1.0, "integrator": "A"}
     bad = {**metrics, "cost": 1e-3, "integrator": "B"}
     result = tradeoff.TradeoffResult(rows=[good, bad], times=np.array([1.0]))
@@ -310,6 +319,8 @@ def test_comparison_times_checks_its_input():
     an earlier t_final times running backwards."""
     scene, params, state = two_body_scene()
     np.testing.assert_allclose(rb.comparison_times(state, 0.2, np.int64(2)), [0.1, 0.2])
+    # A JAX scalar t_final (it raised a TypeError: the times had become an immutable JAX array).
+    np.testing.assert_allclose(rb.comparison_times(state, jnp.asarray(0.2), 2), [0.1, 0.2])
     for t_final, num_compare, message in [(0.2, 0, "num_compare"), (0.2, 2.5, "num_compare"),
                                           (0.2, True, "num_compare"), (-1.0, 2, "later than the state's time"),
                                           (np.nan, 2, "finite")]:
@@ -332,6 +343,13 @@ def test_bad_objects_and_references_raise():
                           reference=bad_reference, num_compare=10)
     with pytest.raises(ValueError, match="reference must be"):
         tradeoff.tradeoff(scene, params, state, 1.0, integrators=[rb.integrators.RK4()], dts=[0.05], reference=3)
+    # A stacked State saved for another t_final (every 0.2 s, not 0.1 s) was taken silently.
+    ten = jnp.zeros((10, 2, 3))
+    elsewhere = rb.State(position=ten, orientation=jnp.zeros((10, 2, 4)), velocity=ten, angular_momentum=ten,
+                         time=0.2 * jnp.arange(1, 11))
+    with pytest.raises(ValueError, match="saved at other times"):
+        tradeoff.tradeoff(scene, params, state, 1.0, integrators=[rb.integrators.RK4()], dts=[0.1],
+                          reference=elsewhere, num_compare=10)
 
 
 def test_precomputed_reference_gives_the_same_rows(sweep):
