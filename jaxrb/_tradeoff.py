@@ -427,6 +427,7 @@ def tradeoff(
     reference=None,
     repeats: int = 3,
     num_compare: int = 20,
+    max_steps: int = 65_536,
 ) -> TradeoffResult:
     """Run every candidate integrator at every ``dt`` on this scene and measure error and cost.
 
@@ -443,6 +444,8 @@ def tradeoff(
             :func:`comparison_times`); default: computed here.
         repeats: timed calls of each compiled rollout; the best is kept.
         num_compare: number of comparison times.
+        max_steps: the reference solves' step limit (:func:`reference_solution`); raise it
+            for long horizons, where diffrax stops with "maximum number of solver steps".
 
     Returns:
         A :class:`TradeoffResult`. Costs are measured on whatever device JAX uses, with
@@ -471,9 +474,10 @@ def tradeoff(
     floor = None
     if reference is None:
         tol = _reference_tolerance(state.position.dtype)
-        reference = reference_solution(scene, params, state, t_final, num_compare=num_compare, rtol=tol, atol=tol)
+        reference = reference_solution(scene, params, state, t_final, num_compare=num_compare, rtol=tol, atol=tol,
+                                       max_steps=max_steps)
         looser = reference_solution(scene, params, state, t_final, num_compare=num_compare,
-                                    rtol=10 * tol, atol=10 * tol)
+                                    rtol=10 * tol, atol=10 * tol, max_steps=max_steps)
         floor = {m: v for m, v in _row_metrics(params, looser.trajectory, reference.trajectory).items()
                  if m in METRICS}
         info["reference"] = {"solver": "Dopri8", "rtol": tol, "atol": tol, "num_steps": int(reference.num_steps)}

@@ -343,6 +343,9 @@ def test_bad_objects_and_references_raise():
                           reference=bad_reference, num_compare=10)
     with pytest.raises(ValueError, match="reference must be"):
         tradeoff.tradeoff(scene, params, state, 1.0, integrators=[rb.integrators.RK4()], dts=[0.05], reference=3)
+    # The reference solves' step limit is the caller's (a long horizon had no way to raise it).
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        tradeoff.tradeoff(scene, params, state, 1.0, integrators=[rb.integrators.RK4()], dts=[0.1], max_steps=0)
     # A stacked State saved for another t_final (every 0.2 s, not 0.1 s) was taken silently.
     ten = jnp.zeros((10, 2, 3))
     elsewhere = rb.State(position=ten, orientation=jnp.zeros((10, 2, 4)), velocity=ten, angular_momentum=ten,
