@@ -101,6 +101,10 @@ def _reference_tolerance(dtype) -> float:
     return 1e-12 if jnp.dtype(dtype) == jnp.float64 else 1e-6
 
 
+#: The reference solves' default step limit (:func:`reference_solution`, :func:`tradeoff`).
+_REFERENCE_MAX_STEPS = 65_536
+
+
 def reference_solution(
     scene: Scene,
     params: Params,
@@ -110,7 +114,7 @@ def reference_solution(
     num_compare: int = 20,
     rtol: float | None = None,
     atol: float | None = None,
-    max_steps: int = 65_536,
+    max_steps: int = _REFERENCE_MAX_STEPS,
 ) -> ode.Solution:
     """The reference :func:`tradeoff` compares against: Dopri8 saved at :func:`comparison_times`.
 
@@ -156,6 +160,7 @@ def _relative(difference: np.ndarray, scale: float) -> float:
 #: An error (m, m/s, rad, or relative) beyond which a run counts as failed: no simulation
 #: is being measured any more, and a log axis spanning 300 decades crashed matplotlib.
 DIVERGED = 1e30
+_FAILED_ROW = {**{m: math.inf for m in METRICS}, "failed": True}
 
 
 def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[str, Any]:
@@ -170,7 +175,7 @@ def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[st
     leaves = [trajectory.position, trajectory.orientation, trajectory.velocity, trajectory.angular_momentum]
     failed = not all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
     if failed:
-        return {**{m: math.inf for m in METRICS}, "failed": True}
+        return _FAILED_ROW.copy()
     angle = spatial.rotation_angle(rotation_matrix(reference), rotation_matrix(trajectory))
     energy, _ = _total_energy_and_scale(params, trajectory)
     energy_ref, energy_scale = _total_energy_and_scale(params, reference)
@@ -190,7 +195,7 @@ def _row_metrics(params: Params, trajectory: State, reference: State) -> dict[st
                                   float(np.max(np.asarray(energy_scale)))),
     }
     if not all(math.isfinite(e) and e <= DIVERGED for e in errors.values()):
-        return {**{m: math.inf for m in METRICS}, "failed": True}
+        return _FAILED_ROW.copy()
     return {**errors, "failed": False}
 
 
@@ -427,7 +432,7 @@ def tradeoff(
     reference=None,
     repeats: int = 3,
     num_compare: int = 20,
-    max_steps: int = 65_536,
+    max_steps: int = _REFERENCE_MAX_STEPS,
 ) -> TradeoffResult:
     """Run every candidate integrator at every ``dt`` on this scene and measure error and cost.
 
